@@ -1,0 +1,43 @@
+#!/usr/bin/env bash
+# One-shot set-up for a fresh Debian/Ubuntu machine with Python >= 3.11:
+#   * installs Debian's libusb-1.0-0 (open3d, imported by pytorch_volumetric, needs it) when missing,
+#   * creates .venv/ at the repository root,
+#   * installs torch as a CPU build unless an NVIDIA GPU is present (a bare `torch` pulls GBs of CUDA),
+#   * installs activetouch (editable) with its test extras.
+# Idempotent: re-running only installs what is missing.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+TORCH_VERSION=${TORCH_VERSION:-2.13.0}
+
+if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+    echo "[setup] installing libusb-1.0-0 (needed by open3d)"
+    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    $SUDO apt-get update -qq && $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
+fi
+
+"$PY" -c 'import sys; assert sys.version_info >= (3, 11), "activetouch needs Python >= 3.11"'
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+VPY=.venv/bin/python
+$VPY -m pip install -q --upgrade pip >/dev/null 2>&1 || true
+
+if ! $VPY -c "import torch" 2>/dev/null; then
+    if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then
+        echo "[setup] NVIDIA GPU found: installing torch==$TORCH_VERSION (CUDA build)"
+        $VPY -m pip install -q "torch==$TORCH_VERSION"
+    elif TMPW=$(mktemp -d) && $VPY -m pip download -q --no-deps --no-index -d "$TMPW" "torch==$TORCH_VERSION" 2>/dev/null \
+            && ls "$TMPW"/torch-*+cpu-*.whl >/dev/null 2>&1; then
+        echo "[setup] installing torch==$TORCH_VERSION from a local CPU wheel"
+        $VPY -m pip install -q "$TMPW"/torch-*.whl
+    else
+        echo "[setup] installing the CPU build of torch==$TORCH_VERSION"
+        $VPY -m pip install -q "torch==$TORCH_VERSION" \
+            --index-url "${TORCH_INDEX_URL:-https://download.pytorch.org/whl/cpu}" \
+            --extra-index-url "${PIP_MAIN_INDEX:-https://pypi.org/simple}"
+    fi
+fi
+
+echo "[setup] installing activetouch and its dependencies"
+# (pip's "Location ... is ignored" lines come from machines with local mirrors: noise, filtered out)
+$VPY -m pip install -q -e ".[test]" 2> >(grep -v "is ignored: it is neither" >&2)
+echo "[setup] done: $($VPY -c 'import activetouch, torch; print("activetouch", activetouch.__version__, "| torch", torch.__version__)')"

@@ -1,0 +1,29 @@
+"""RUMI pose particle belief ``p(T | X)``: CHSEL discrepancy, weighing, resampling, prediction, ObjMove.
+
+* :mod:`.config` - ``BeliefConfig`` (Table IV defaults).
+* :mod:`.discrepancy` - ``C^(X, T)`` (Eq. 3-9), batched over particles, differentiable.
+* :mod:`.particle_filter` - ``ParticleBelief`` (Algorithms 1, 2, 4; predict; from_prior).
+* :mod:`.resample` - systematic importance resampling, PerturbTransform application (Alg. 3, 4).
+* :mod:`.optimise` - N_o Adam steps on the discrepancy over local SE(2)/SE(3) pose parameters.
+* :mod:`.objmove` - ObjMove (Algorithm 5) and its frame algebra.
+* :mod:`.priors` - mug and Gaussian-position/uniform-yaw priors.
+* :mod:`.chsel_init` - CHSEL quality-diversity initialisation (Algorithm 1 line 2).
+"""
+from . import priors
+from .config import BeliefConfig
+from .discrepancy import discrepancy, point_costs
+from .particle_filter import ParticleBelief, boltzmann_weights
+from .priors import gaussian_yaw_prior, mug_prior
+from .resample import systematic_resample
+
+__all__ = [
+    "BeliefConfig",
+    "ParticleBelief",
+    "boltzmann_weights",
+    "discrepancy",
+    "point_costs",
+    "priors",
+    "mug_prior",
+    "gaussian_yaw_prior",
+    "systematic_resample",
+]

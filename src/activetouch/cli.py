@@ -1,0 +1,225 @@
+"""``activetouch`` command line.
+
+    activetouch tasks                          list the registered tasks
+    activetouch methods                        list the registered methods
+    activetouch show mug-0 --out mug0.png      picture of a task's start
+    activetouch run mug-0 --method rumi --seed 0 --out runs/mug0
+    activetouch sweep --tasks mug-0 mug-1 --methods rumi info-only --seeds 10 --out runs/sweep --workers 2
+    activetouch table runs/sweep               results next to the paper's Tables V/VI
+    activetouch demo                           RUMI on mug-0 with figures (the README's demo)
+    activetouch bench {belief,step,planning,all}
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import runpy
+import sys
+from pathlib import Path
+
+
+def _episode_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--method", default="rumi", help="registered method (see `activetouch methods`)")
+    p.add_argument("--steps", type=int, default=None, help="steps T (default: the task's, 40)")
+    p.add_argument("--particles", type=int, default=100, help="pose particles P (Table IV: 100)")
+    p.add_argument("--device", default="cuda" if _cuda() else "cpu", help="torch device (default: cuda if present)")
+    p.add_argument("--no-chsel", action="store_true", help="skip CHSEL initialisation (faster, worse prior)")
+    p.add_argument("--chsel-iterations", type=int, default=5)
+    p.add_argument("--estimate-dT", action="store_true", help="estimate object motion with ObjMove (Alg. 5) "
+                   "instead of observing it as the paper does in sim")
+    p.add_argument("--samples", type=int, default=None, help="KMPPI samples (paper: 500)")
+    p.add_argument("--rollouts", type=int, default=None, help="stochastic rollouts per sample (paper: 5)")
+    p.add_argument("--horizon", type=int, default=None, help="KMPPI horizon H (paper: 15)")
+    p.add_argument("--no-terminate", action="store_true", help="run all T steps even after APC convergence")
+    p.add_argument("--no-figures", action="store_true")
+
+
+def _cuda() -> bool:
+    try:
+        import torch
+
+        return torch.cuda.is_available()
+    except Exception:  # pragma: no cover
+        return False
+
+
+def _episode_config(a, task: str, seed: int):
+    from activetouch.experiments.runner import EpisodeConfig
+
+    planner = {k: v for k, v in (("num_samples", a.samples), ("rollout_samples", a.rollouts), ("horizon", a.horizon))
+               if v is not None}
+    return EpisodeConfig(task=task, method=a.method, seed=seed, steps=a.steps, particles=a.particles, device=a.device,
+                         use_chsel=not a.no_chsel, chsel_iterations=a.chsel_iterations, observe_dT=not a.estimate_dT,
+                         terminate_on_convergence=not a.no_terminate, planner=planner, figures=not a.no_figures)
+
+
+def _print_summary(s: dict, out: Path) -> None:
+    ok = "SUCCESS" if s["success"] else "failure"
+    print(f"\n{s['method']} on {s['task']} (seed {s['seed']}): {ok}")
+    print(f"  min nll         {s['min_nll']:10.1f}   (success threshold {s['nll_threshold']:g}, Table III)")
+    print(f"  final nll       {s['final_nll']:10.1f}")
+    print(f"  cumulative nll  {s['cumulative_nll']:10.1f}")
+    print(f"  steps           {s['steps']:10d}   converged (APC < beta_t l_c): {s['converged']}")
+    if s.get("median_plan_s") is not None:
+        print(f"  median plan s   {s['median_plan_s']:10.3f}")
+    print(f"  results in      {out}/ (steps.csv, summary.json, curves.png, belief.png)")
+
+
+def cmd_run(a) -> int:
+    from activetouch.experiments.runner import run_episode
+
+    out = Path(a.out or f"runs/{a.task}-{a.method}-seed{a.seed}")
+    s = run_episode(_episode_config(a, a.task, a.seed), out)
+    _print_summary(s, out)
+    return 0
+
+
+def cmd_demo(a) -> int:
+    from activetouch.experiments.runner import run_episode
+
+    out = Path(a.out)
+    print("activetouch demo: RUMI (information gain + reachability, KMPPI) rummaging for the pose of a mug whose\n"
+          "handle the camera cannot see (task mug-0). Writes figures and per-step results to", out)
+    a.method = "rumi"
+    s = run_episode(_episode_config(a, "mug-0", a.seed), out)
+    _print_summary(s, out)
+    return 0
+
+
+def cmd_sweep(a) -> int:
+    from activetouch.experiments.runner import EpisodeConfig, run_sweep
+    from activetouch.experiments.tables import markdown_table
+
+    base = _episode_config(a, a.tasks[0], 0)
+    summaries = run_sweep(a.tasks, a.methods, list(range(a.seed0, a.seed0 + a.seeds)), a.out,
+                          base=EpisodeConfig(**{**base.__dict__, "figures": not a.no_figures}),
+                          workers=a.workers, backend=a.backend)
+    table = markdown_table(summaries)
+    Path(a.out, "table.md").write_text(table + "\n")
+    print(table)
+    return 0
+
+
+def cmd_table(a) -> int:
+    from activetouch.experiments.records import load_summaries
+    from activetouch.experiments.tables import markdown_table
+
+    dirs = sorted({p.parent for p in Path(a.root).rglob("summary.json")})
+    if not dirs:
+        print(f"no finished episodes (summary.json) under {a.root}", file=sys.stderr)
+        return 1
+    print(markdown_table(load_summaries(dirs)))
+    return 0
+
+
+def cmd_tasks(a) -> int:
+    from activetouch import sim
+
+    for name in sim.registered():
+        spec = sim.get_spec(name)
+        print(f"{name:10s} {spec.object_name:12s} actions={spec.action_space:6s} "
+              f"search={'SE(2)' if spec.se2 else 'SE(3)'} r_w={spec.r_w} T={spec.max_steps} nll<{spec.nll_threshold:g}")
+    return 0
+
+
+def cmd_methods(a) -> int:
+    from activetouch.registry import get_method, methods
+
+    for name in methods():
+        print(f"{name:12s} {get_method(name).description}")
+    return 0
+
+
+def cmd_show(a) -> int:
+    from activetouch import sim
+
+    env = sim.make(a.task, seed=a.seed)
+    env.reset(seed=a.seed)
+    out = Path(a.out or f"{a.task}.png")
+    env.render(out)
+    print(f"saved {out}")
+    return 0
+
+
+def _repo_benchmarks() -> Path:
+    for base in (Path.cwd(), Path(__file__).resolve().parents[2]):
+        if (base / "benchmarks").is_dir():
+            return base / "benchmarks"
+    raise SystemExit("benchmarks/ not found: run `activetouch bench` from a clone of the repository")
+
+
+def cmd_bench(a) -> int:
+    bdir = _repo_benchmarks()
+    names = ["belief", "step", "planning"] if a.which == "all" else [a.which]
+    for n in names:
+        script = bdir / f"bench_{n}.py"
+        if not script.exists():
+            print(f"missing {script}", file=sys.stderr)
+            return 1
+        print(f"== {script.name} ==", flush=True)
+        sys.argv = [str(script), *a.args]
+        runpy.run_path(str(script), run_name="__main__")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="activetouch", description="Active tactile pose estimation of known objects.")
+    p.add_argument("-v", "--verbose", action="store_true")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    r = sub.add_parser("run", help="run one episode of a method on a task")
+    r.add_argument("task")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--out", default=None, help="output folder (default runs/TASK-METHOD-seedS)")
+    _episode_args(r)
+    r.set_defaults(func=cmd_run)
+
+    d = sub.add_parser("demo", help="RUMI on mug-0 with figures (the README's demo)")
+    d.add_argument("--out", default="runs/demo")
+    d.add_argument("--seed", type=int, default=0)
+    _episode_args(d)
+    d.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("sweep", help="run tasks x methods x seeds (resumes: finished episodes are skipped)")
+    s.add_argument("--tasks", nargs="+", required=True)
+    s.add_argument("--methods", nargs="+", default=["rumi"])
+    s.add_argument("--seeds", type=int, default=10, help="number of seeds")
+    s.add_argument("--seed0", type=int, default=0)
+    s.add_argument("--out", default="runs/sweep")
+    s.add_argument("--workers", type=int, default=1)
+    s.add_argument("--backend", choices=["process", "ray"], default="process")
+    _episode_args(s)
+    s.set_defaults(func=cmd_sweep)
+
+    t = sub.add_parser("table", help="table of finished episodes under a folder, next to the paper's")
+    t.add_argument("root")
+    t.set_defaults(func=cmd_table)
+
+    sub.add_parser("tasks", help="list tasks").set_defaults(func=cmd_tasks)
+    sub.add_parser("methods", help="list methods").set_defaults(func=cmd_methods)
+
+    sh = sub.add_parser("show", help="save a picture of a task's start")
+    sh.add_argument("task")
+    sh.add_argument("--seed", type=int, default=0)
+    sh.add_argument("--out", default=None)
+    sh.set_defaults(func=cmd_show)
+
+    b = sub.add_parser("bench", help="run a benchmark script from benchmarks/")
+    b.add_argument("which", choices=["belief", "step", "planning", "all"])
+    b.add_argument("args", nargs=argparse.REMAINDER)
+    b.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return a.func(a)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

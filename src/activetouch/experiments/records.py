@@ -1,0 +1,101 @@
+"""Result files written while an episode runs, so nothing finished is lost on a crash.
+
+* ``steps.csv`` - one row per step, appended and flushed as soon as the step is done.
+* ``summary.json`` - written atomically (temp file + rename) when the episode ends; its presence marks the
+  episode as finished, which is what sweeps use to resume.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+STEP_COLUMNS: tuple[str, ...] = (
+    "step", "nll", "apc", "n_features", "n_surface", "in_contact", "resampled", "active_share",
+    "trans_err", "rot_err_deg", "plan_s", "field_s", "dynamics_s", "cost_s", "update_s", "step_s",
+)
+
+
+class StepWriter:
+    """Append-only CSV writer of per-step rows with a fixed column order (flushed + fsynced per row)."""
+
+    def __init__(self, path: str | os.PathLike, columns: Sequence[str] = STEP_COLUMNS):
+        self.path = Path(path)
+        self.columns = tuple(columns)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh = open(self.path, "w", newline="")
+        self._writer = csv.DictWriter(self._fh, fieldnames=self.columns, extrasaction="ignore")
+        self._writer.writeheader()
+        self._fh.flush()
+
+    def write(self, row: dict[str, Any]) -> None:
+        missing = [c for c in ("step",) if c not in row]
+        if missing:
+            raise ValueError(f"step row lacks columns {missing}")
+        self._writer.writerow({k: _fmt(row.get(k, "")) for k in self.columns})
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+
+    def close(self) -> None:
+        if not self._fh.closed:
+            self._fh.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _fmt(v: Any) -> Any:
+    if isinstance(v, bool):
+        return int(v)
+    if isinstance(v, float):
+        return f"{v:.6g}" if math.isfinite(v) else str(v)
+    return v
+
+
+def read_steps(path: str | os.PathLike) -> list[dict[str, str]]:
+    """Read ``steps.csv`` back as a list of dicts (strings)."""
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def write_json_atomic(path: str | os.PathLike, data: dict[str, Any]) -> Path:
+    """Write JSON via a temporary file and an atomic rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    with open(tmp, "w") as fh:
+        json.dump(data, fh, indent=2, sort_keys=True, default=_json_default)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    return path
+
+
+def _json_default(o: Any):
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def is_finished(episode_dir: str | os.PathLike) -> bool:
+    """An episode is finished when its ``summary.json`` exists and parses."""
+    p = Path(episode_dir) / "summary.json"
+    if not p.exists():
+        return False
+    try:
+        json.loads(p.read_text())
+        return True
+    except json.JSONDecodeError:
+        return False
+
+
+def load_summaries(dirs: Iterable[str | os.PathLike]) -> list[dict[str, Any]]:
+    return [json.loads((Path(d) / "summary.json").read_text()) for d in dirs if is_finished(d)]

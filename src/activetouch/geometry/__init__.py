@@ -1,0 +1,29 @@
+"""Rigid transforms (SE(3)/SE(2) pose batches) and voxel grids."""
+from . import transforms, voxel
+from .transforms import (
+    axis_angle_to_matrix,
+    check_poses,
+    invert,
+    make_pose,
+    perturb_transform,
+    pose_from_xyz_yaw,
+    transform_points,
+    yaw_matrix,
+    yaw_of,
+)
+from .voxel import VoxelGrid
+
+__all__ = [
+    "transforms",
+    "voxel",
+    "VoxelGrid",
+    "axis_angle_to_matrix",
+    "check_poses",
+    "invert",
+    "make_pose",
+    "perturb_transform",
+    "pose_from_xyz_yaw",
+    "transform_points",
+    "yaw_matrix",
+    "yaw_of",
+]

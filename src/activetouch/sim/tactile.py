@@ -1,0 +1,81 @@
+"""Simulated tactile sensing of the two soft-bubble stand-in pads (RUMI section V-A).
+
+After each step the sensors report
+
+- ``s = surface``: ``{x in h_I(q) : |sdf(T* x)| < 3 mm}`` with the exact object SDF (``obj.sdf``),
+- ``s = free``: the gripper's interior points ``h(q)`` that are not in contact (``sdf(T* x) > 3 mm``).
+
+Points are world-frame. Points that cannot be near the object (outside its bounding box grown by
+the contact band) are classified without an SDF query, which keeps a step fast.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from .robot import GRIPPER, GripperGeometry, gripper_points
+
+__all__ = ["TactileSensor", "TactileReading"]
+
+
+@dataclasses.dataclass
+class TactileReading:
+    surface: np.ndarray  # (S, 3) world
+    free: np.ndarray  # (F, 3) world
+
+
+class TactileSensor:
+    """Contact and free-space sensing of the gripper for one known object.
+
+    Args:
+        obj: the ``KnownObject`` (needs ``.sdf`` and ``.bounds``).
+        band: contact band half-width (metres), 3 mm in the paper.
+        contact_spacing: spacing of the pad points ``h_I`` used for contact (finer than the planner's).
+        free_spacing: spacing of ``h`` used for free-space points.
+        shell: only pad points within this distance of the pad boundary are tested for contact: the
+            pads are rigid, so deeper points are farther than ``band`` from any object surface.
+    """
+
+    def __init__(self, obj, band: float = 0.003, contact_spacing: float = 0.004, free_spacing: float = 0.01,
+                 shell: float = 0.006, geometry: GripperGeometry = GRIPPER):
+        if not band > 0:
+            raise ValueError(f"band must be > 0, got {band}")
+        self.obj = obj
+        self.band = band
+        pads, _ = gripper_points(contact_spacing, geometry, pads_only=True)
+        pads = pads.double().numpy()
+        depth = np.full(len(pads), np.inf)
+        for c in geometry.pad_centres:
+            rel = np.abs(pads - np.asarray(c)) - np.asarray(geometry.pad_half)
+            inside = (rel <= 1e-9).all(axis=1)
+            depth = np.where(inside, np.minimum(depth, -rel.max(axis=1)), depth)
+        self.pad_pts = pads[depth <= shell]  # (Mc, 3) ee frame
+        h, mask = gripper_points(free_spacing, geometry)
+        self.h_pts = h.double().numpy()  # (M, 3) ee frame
+        b = np.asarray(obj.bounds, dtype=np.float64) if not torch.is_tensor(obj.bounds) else obj.bounds.double().cpu().numpy()
+        self.lo = b[0] - band
+        self.hi = b[1] + band
+
+    def _sdf_obj(self, x_obj: np.ndarray) -> np.ndarray:
+        """Exact SDF of object-frame points ``(N, 3)`` -> ``(N,)``; boxes-outside points get +inf."""
+        out = np.full(len(x_obj), np.inf)
+        near = ((x_obj >= self.lo) & (x_obj <= self.hi)).all(axis=1)
+        if near.any():
+            v, _ = self.obj.sdf(torch.as_tensor(x_obj[near], dtype=torch.float32))
+            out[near] = v.detach().cpu().double().numpy()
+        return out
+
+    def sense(self, ee_pose: np.ndarray, obj_pose: np.ndarray) -> TactileReading:
+        """Tactile reading for ee pose ``(4, 4)`` and true object pose ``(4, 4)`` (object -> world)."""
+        inv = np.linalg.inv(obj_pose)
+        A = inv @ ee_pose  # ee frame -> object frame
+        pad_obj = self.pad_pts @ A[:3, :3].T + A[:3, 3]
+        v = self._sdf_obj(pad_obj)
+        touch = np.abs(v) < self.band
+        surface = self.pad_pts[touch] @ ee_pose[:3, :3].T + ee_pose[:3, 3]
+        h_obj = self.h_pts @ A[:3, :3].T + A[:3, 3]
+        vf = self._sdf_obj(h_obj)
+        free = self.h_pts[vf > self.band] @ ee_pose[:3, :3].T + ee_pose[:3, 3]
+        return TactileReading(surface=surface, free=free)

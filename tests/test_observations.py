@@ -1,0 +1,173 @@
+"""Tests for activetouch.observations: Features, voxel downsampling, MergeObs (Alg. 6), sensor model."""
+import math
+
+import pytest
+import torch
+import trimesh
+
+from activetouch import objects
+from activetouch.geometry import transforms as tf
+from activetouch.observations import Features, SemanticSensorModel, Semantics, merge_obs, voxel_downsample
+
+S, F, O = int(Semantics.SURFACE), int(Semantics.FREE), int(Semantics.OCCUPIED)
+
+
+def test_semantics_match_chsel():
+    chsel = pytest.importorskip("chsel")
+    assert int(chsel.SemanticsClass.SURFACE) == S == 0
+    assert int(chsel.SemanticsClass.FREE) == F == 1
+    assert int(chsel.SemanticsClass.OCCUPIED) == O == 2
+
+
+def test_features_validation():
+    with pytest.raises(ValueError, match="NaN"):
+        Features(torch.tensor([[0.0, float("nan"), 0.0]]), [F])
+    with pytest.raises(ValueError, match="NaN or inf"):
+        Features(torch.tensor([[0.0, float("inf"), 0.0]]), [F])
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        Features(torch.zeros(4, 2), [F] * 4)
+    with pytest.raises(ValueError, match="shape"):
+        Features(torch.zeros(4, 3), [F] * 3)
+    with pytest.raises(ValueError, match="unknown values \\[3\\]"):
+        Features(torch.zeros(2, 3), [F, 3])
+    with pytest.raises(ValueError, match="unknown values"):
+        Features(torch.zeros(1, 3), [-1])
+    with pytest.raises(ValueError, match="non-integer"):
+        Features(torch.zeros(1, 3), torch.tensor([0.5]))
+
+
+def test_features_views_and_empty():
+    e = Features.empty()
+    assert len(e) == 0 and e.positions.shape == (0, 3) and e.semantics.dtype == torch.long
+    assert len(e.free) == 0 and len(Features.concat([])) == 0
+    f = Features(torch.arange(12.0).reshape(4, 3), [S, F, F, O])
+    assert f.positions.dtype == torch.float32
+    assert len(f.free) == 2 and len(f.surface) == 1 and len(f.occupied) == 1
+    assert f.counts() == {Semantics.SURFACE: 1, Semantics.FREE: 2, Semantics.OCCUPIED: 1}
+    g = f.cat(Features(torch.zeros(1, 3), Semantics.SURFACE))
+    assert len(g) == 5 and g.semantics[-1] == S
+    assert len(e.cat(f)) == 4
+    assert torch.equal(f.select(torch.tensor([True, False, True, False])).semantics, torch.tensor([S, F]))
+    assert f.to("cpu").positions.device.type == "cpu"
+    T = tf.pose_from_xyz_yaw(torch.tensor([1.0, 0, 0]), torch.tensor(0.0))
+    assert torch.allclose(f.transformed(T).positions, f.positions + torch.tensor([1.0, 0, 0]))
+
+
+def test_voxel_downsample_one_point_per_cell_at_centres():
+    r_f, r_s = 0.010, 0.002
+    pts = torch.tensor(
+        [
+            [0.0011, 0.0012, 0.0013],  # free cell (0,0,0) -> centre (5, 5, 5) mm
+            [0.0091, 0.0002, 0.0099],  # same free cell
+            [0.0101, 0.0, 0.0],  # next free cell (1,0,0) -> (15, 5, 5) mm
+            [-0.0001, 0.0, 0.0],  # free cell (-1,0,0) -> (-5, 5, 5) mm
+            [0.0011, 0.0012, 0.0013],  # surface cell (0,0,0) of 2 mm -> (1, 1, 1) mm
+            [0.0019, 0.0001, 0.0019],  # same surface cell
+            [0.0031, 0.0012, 0.0013],  # surface cell (1,0,0) -> (3, 1, 1) mm
+            [0.0011, 0.0012, 0.0013],  # occupied, kept separately
+        ]
+    )
+    f = Features(pts, [F, F, F, F, S, S, S, O])
+    d = voxel_downsample(f, r_free=r_f, r_surface=r_s)
+    assert d.counts() == {Semantics.SURFACE: 2, Semantics.FREE: 3, Semantics.OCCUPIED: 1}
+    mm = lambda *v: torch.tensor(v) * 1e-3  # noqa: E731
+    assert torch.allclose(d.surface.positions, torch.stack([mm(1, 1, 1), mm(3, 1, 1)]), atol=1e-7)
+    assert torch.allclose(d.free.positions, torch.stack([mm(-5, 5, 5), mm(5, 5, 5), mm(15, 5, 5)]), atol=1e-7)
+    assert torch.allclose(d.occupied.positions, mm(1, 1, 1).unsqueeze(0), atol=1e-7)
+    # idempotent (no drift when merging step after step), empty input allowed
+    d2 = voxel_downsample(d, r_free=r_f, r_surface=r_s)
+    assert torch.equal(d2.positions, d.positions) and torch.equal(d2.semantics, d.semantics)
+    assert len(voxel_downsample(Features.empty())) == 0
+    # random cloud: exactly one output per occupied cell, every output within half a cell diagonal
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(5000, 3, generator=g) * 0.05
+    dr = voxel_downsample(Features(x, Semantics.FREE))
+    assert len(dr) == len(torch.unique(torch.floor(x / r_f).long(), dim=0))
+    nn = torch.cdist(x, dr.positions).min(dim=1).values
+    assert nn.max() <= math.sqrt(3) * r_f / 2 + 1e-6
+    with pytest.raises(ValueError):
+        voxel_downsample(f, r_free=0.0)
+
+
+@pytest.fixture()
+def box_obj(tmp_path, monkeypatch):
+    """Analytic 4 x 6 x 8 cm box (base-centred), coarse SDF cache in a temporary cache dir."""
+    monkeypatch.setenv("ACTIVETOUCH_CACHE_DIR", str(tmp_path / "cache"))
+    m = trimesh.creation.box(extents=[0.04, 0.06, 0.08])
+    m.apply_translation([0, 0, 0.04])
+    p = tmp_path / "box.obj"
+    m.export(p)
+    return objects.load(str(p), sdf_resolution=0.002)
+
+
+def test_merge_obs_moves_object_features_and_drops_covered_free_points(box_obj):
+    dT_w = tf.pose_from_xyz_yaw(torch.tensor([0.1, 0.0, 0.0]), torch.tensor(0.3))  # object pushed 10 cm, turned
+    poses = dT_w.unsqueeze(0)  # particle after the predict step: dT @ I
+    prev = Features(
+        torch.tensor(
+            [
+                [0.02, 0.0, 0.04],  # surface point on the old +x face
+                [0.1, 0.0, 0.04],  # free before the move, inside the moved box now -> dropped
+                [-0.2, 0.0, 0.04],  # free, far from both -> kept
+                [0.0, 0.0, 0.1],  # free, above both -> kept
+            ]
+        ),
+        [S, F, F, F],
+    )
+    new = Features(torch.tensor([[0.3, 0.3, 0.3]]), [F])
+    out = merge_obs(prev, new, poses, box_obj, dT_w)
+    free = out.free.positions
+    assert len(out.free) == 3
+    assert torch.cdist(free, torch.tensor([[0.1, 0.0, 0.04]])).min() > 0.02
+    for keep in ([-0.2, 0.0, 0.04], [0.0, 0.0, 0.1], [0.3, 0.3, 0.3]):
+        assert torch.cdist(free, torch.tensor([keep])).min() <= math.sqrt(3) * 0.005 + 1e-6
+    moved = tf.transform_points(dT_w, torch.tensor([[0.02, 0.0, 0.04]]))
+    assert len(out.surface) == 1
+    assert (out.surface.positions - moved).norm() <= math.sqrt(3) * 0.001 + 1e-6
+    # the moved surface point is on the moved box
+    v, _ = box_obj.sdf_world(poses, out.surface.positions, exact=True)
+    assert v.abs().max() < 2e-3
+
+
+def test_merge_obs_keeps_free_point_only_if_free_for_all_particles(box_obj):
+    dT_w = tf.pose_from_xyz_yaw(torch.tensor([0.05, 0.0, 0.0]), torch.tensor(0.0))
+    far = tf.pose_from_xyz_yaw(torch.tensor([0.5, 0.5, 0.0]), torch.tensor(0.0))
+    covering = tf.pose_from_xyz_yaw(torch.tensor([0.1, 0.0, 0.0]), torch.tensor(0.0))
+    prev = Features(torch.tensor([[0.1, 0.0, 0.04]]), [F])
+    assert len(merge_obs(prev, Features.empty(), far.unsqueeze(0), box_obj, dT_w).free) == 1
+    both = torch.stack([far, covering])
+    assert len(merge_obs(prev, Features.empty(), both, box_obj, dT_w)) == 0
+    # no move (dT_w None): nothing can have been covered, free evidence is kept
+    assert len(merge_obs(prev, Features.empty(), both, box_obj, None)) == 1
+    # empty everything
+    assert len(merge_obs(Features.empty(), Features.empty(), both, box_obj, dT_w)) == 0
+
+
+def test_sensor_model_sums_to_one_and_shape():
+    sm = SemanticSensorModel()
+    assert (sm.zeta, sm.alpha) == (0.003, 100.0)
+    z = sm.zeta
+    v = torch.cat(
+        [
+            torch.linspace(-1.0, 1.0, 20001, dtype=torch.float64),
+            torch.tensor([0.0, z, -z, z + 1e-9, -z - 1e-9, 1e6, -1e6, float("inf"), -float("inf")], dtype=torch.float64),
+        ]
+    )
+    p = sm.probs(v)
+    assert p.shape == (len(v), 3)
+    assert torch.allclose(p.sum(-1), torch.ones(len(v), dtype=p.dtype), atol=1e-12)
+    assert (p >= 0).all() and (p <= 1).all()
+    # known values
+    p0 = sm.probs(torch.tensor([0.0, z, -z, z + 0.01, -(z + 0.01), 1.0, -1.0], dtype=torch.float64))
+    e = math.exp(-1.0)
+    ref = torch.tensor(
+        [[1, 0, 0], [1, 0, 0], [1, 0, 0], [e, 1 - e, 0], [e, 0, 1 - e], [0, 1, 0], [0, 0, 1]], dtype=torch.float64
+    )
+    assert torch.allclose(p0, ref, atol=1e-12)
+    # monotone: p(free) grows with v, p(occupied) shrinks
+    assert (p[:20001, F].diff() >= 0).all() and (p[:20001, O].diff() <= 0).all()
+    assert sm.probs(torch.zeros(2, 5)).shape == (2, 5, 3)
+    with pytest.raises(ValueError, match="NaN"):
+        sm.probs(torch.tensor([float("nan")]))
+    with pytest.raises(ValueError):
+        SemanticSensorModel(alpha=0.0)
