@@ -10,6 +10,21 @@ Each "step" perturbs the particle weights (so the field is recomputed, as after 
 planning call (one KMPPI iteration after the warm start). Prints the median / mean split into field cache,
 dynamics and cost, for the configured thread count and device.
 
+Measured 2026-11-22 on this project's 2-core CPU box (torch 2.13 CPU, other jobs running; medians over 10 steps,
+one KMPPI iteration per planning call, paper parameters, P = 100):
+
+    task     start                threads  total   field   dynamics  cost
+    mug-0    ee_start (0.25,0.22)  2       0.29 s  0.03 s  0.20 s    0.05 s
+    mug-0    --near (8 cm away)    2       0.26 s  0.02 s  0.19 s    0.05 s
+    mug-0    ee_start              1       0.35 s  0.04 s  0.24 s    0.06 s
+    mug-0    --near                1       0.39 s  0.04 s  0.27 s    0.07 s
+    drill-0  ee_start (3-D)        2       3.3 s   0.12 s  3.1 s     0.16 s   (357 robot points, 40x40x10 grid)
+
+The first call of an episode adds the warm start (5 more iterations): ~1.5 s for the mug, ~16 s for the drill.
+The paper reports 0.96 s per step on an RTX 4090. With 2 threads on a machine whose cores are busy with other
+processes, torch's OpenMP threads contend and the same call took ~5 s: use ``--threads 1`` (or
+``torch.set_num_threads(1)``) when the cores are shared.
+
     python benchmarks/bench_planning.py [--task mug-0] [--steps 10] [--threads 1] [--device cpu] [--particles 100] [--near]
 """
 from __future__ import annotations

@@ -135,6 +135,27 @@ def test_tangential_contact_holds_robot(field, gripper, workspace):
     assert dyn.contacts > 0
 
 
+def test_3d_point_culling_is_exact(field, gripper, workspace):
+    """3-D actions: skipping robot points above / below the particles' neighbourhood changes nothing."""
+    def run(cull):
+        dyn = StochasticDynamics(field, gripper, "3d", workspace.lower, workspace.upper,
+                                 generator=torch.Generator().manual_seed(7))
+        dyn.cull_fraction = cull
+        gen = torch.Generator().manual_seed(8)
+        s = torch.zeros(300, 7)
+        s[:, 0] = 0.30 + 0.06 * torch.rand(300, generator=gen)
+        s[:, 1] = -0.05 + 0.1 * torch.rand(300, generator=gen)
+        s[:, 2] = 0.02 + 0.1 * torch.rand(300, generator=gen)
+        u = torch.rand(300, 4, generator=gen) * torch.tensor([1.0, 0.3, -0.5, 0.2])
+        for _ in range(2):
+            s = dyn(s, u)
+        return s, dyn.contacts
+
+    (a, ca), (b, cb) = run(-1.0), run(2.0)  # never / always mask
+    assert ca > 0 and ca == cb
+    assert torch.equal(a, b)
+
+
 def test_dynamics_seeded_and_validated(field, gripper, workspace):
     a = rollout(make_dynamics(field, gripper, workspace, 3), [0.3, 0.0, Z, 0.0], [1.0, 0.2, 0.0], 2)
     b = rollout(make_dynamics(field, gripper, workspace, 3), [0.3, 0.0, Z, 0.0], [1.0, 0.2, 0.0], 2)

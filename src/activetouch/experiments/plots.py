@@ -79,18 +79,31 @@ def draw_particles(ax, obj, poses, weights, *, n_points: int = 150, true_pose=No
     for k in range(len(order)):
         ax.scatter(world[k, :, 0], world[k, :, 1], s=1.5, color=cm(w[k] / wmax), alpha=0.6, linewidths=0, zorder=2)
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, wmax))
-    cb = ax.figure.colorbar(sm, ax=ax, fraction=0.046, pad=0.08)
+    cb = ax.figure.colorbar(sm, ax=ax, orientation="horizontal", fraction=0.046, pad=0.12)
     cb.set_label("particle weight")
     if true_pose is not None:
         tw = _np(transform_points(torch.as_tensor(true_pose).to(pts), pts))
         ax.scatter(tw[:, 0], tw[:, 1], s=2, c="k", alpha=0.8, linewidths=0, label="true pose", zorder=4)
 
 
+def _view(panel: dict, zoom: float) -> tuple[tuple[float, float], float]:
+    """Square view holding the weighted particle mean and the true pose (if given) with ``zoom`` m margin."""
+    w = torch.as_tensor(panel["weights"]).double()
+    mean = (torch.as_tensor(panel["poses"]).double()[:, :2, 3] * w[:, None]).sum(0) / w.sum()
+    pts = [mean.numpy()]
+    if panel.get("true_pose") is not None:
+        pts.append(_np(panel["true_pose"])[:2, 3])
+    pts = np.stack(pts)
+    lo, hi = pts.min(0), pts.max(0)
+    return tuple((lo + hi) / 2), float((hi - lo).max() / 2 + zoom)
+
+
 def belief_figure(path, obj, panels: Sequence[dict], *, title: str | None = None, zoom: float | None = 0.18):
     """Save a row of top-down belief panels.
 
     Each panel is a dict with keys ``poses``, ``weights`` and optionally ``features``, ``true_pose``,
-    ``field`` = (grid, values), ``title``, ``centre`` (x, y) for zooming ``zoom`` metres around it.
+    ``field`` = (grid, values), ``title``. The view holds the weighted particle mean and the true pose with a
+    ``zoom`` metre margin.
     """
     n = len(panels)
     fig, axes = plt.subplots(1, n, figsize=(6.2 * n, 5.6), squeeze=False)
@@ -99,10 +112,10 @@ def belief_figure(path, obj, panels: Sequence[dict], *, title: str | None = None
             draw_field(ax, *p["field"])
         draw_features(ax, p.get("features"))
         draw_particles(ax, obj, p["poses"], p["weights"], true_pose=p.get("true_pose"))
-        if zoom and p.get("centre") is not None:
-            cx, cy = float(p["centre"][0]), float(p["centre"][1])
-            ax.set_xlim(cx - zoom, cx + zoom)
-            ax.set_ylim(cy - zoom, cy + zoom)
+        if zoom:
+            (cx, cy), half = _view(p, zoom)
+            ax.set_xlim(cx - half, cx + half)
+            ax.set_ylim(cy - half, cy + half)
         ax.set_aspect("equal")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")

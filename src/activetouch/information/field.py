@@ -144,7 +144,7 @@ def information_gain(obj, poses, weights, x, *, lam: float, free_scale: float, a
     return lam * (p * c).sum(-1)
 
 
-@dataclass
+@dataclass(eq=False, repr=False)
 class InformationField:
     """Cached RUMI fields on a workspace grid (Algorithm 1 line 5).
 
@@ -187,6 +187,7 @@ class InformationField:
         self._coord_bound = torch.where(n > 1, 1.0 + 1.0 / (n - 1).clamp_min(1), torch.ones_like(n)).to(
             device=device, dtype=dtype)
         self._coord_keep = (n > 1).to(device=device, dtype=dtype)  # single-cell axes sample their only cell
+        self._all_multi = bool((n > 1).all())
         self._free_inp = self._free_offset.permute(2, 1, 0)[None, None].contiguous()  # (1, 1, nz, ny, nx)
         self._free_inp2d = self._free_inp[:, :, 0] if self.grid.shape[2] == 1 else None  # (1, 1, ny, nx)
 
@@ -194,11 +195,12 @@ class InformationField:
         """Normalised grid coordinates ``(..., 3)`` of world points ``x (..., 3)`` (for :meth:`sample_free`)."""
         return x * self.coord_scale + self.coord_offset
 
-    def sample_free(self, g: torch.Tensor) -> torch.Tensor:
+    def sample_free(self, g: torch.Tensor, inside_known: bool = False) -> torch.Tensor:
         """``p(free)`` at normalised grid coordinates ``g (..., 3)`` (:meth:`grid_coords`) -> ``(...)``.
 
         ``g (..., 2)`` (x-y only) is accepted for single-layer grids when the caller knows the points lie in
-        the layer's z range (planar tasks).
+        the layer's z range (planar tasks). ``inside_known=True``: the caller guarantees every point lies in the
+        covered box (skips the outside test).
 
         Identical to :meth:`free_probability` (trilinear, border-clamped within the covered box, 1 outside);
         takes pre-transformed coordinates so the dynamics can fuse the robot transform into one matmul.
@@ -211,14 +213,20 @@ class InformationField:
             out = F.grid_sample(self._free_inp2d, g.reshape(1, -1, 1, 2), mode="bilinear", padding_mode="border",
                                 align_corners=True)
             return out.reshape(g.shape[:-1]) * inside + 1.0
-        inside = (g.abs() <= self._coord_bound).all(-1)
-        out = F.grid_sample(self._free_inp, (g * self._coord_keep).reshape(1, -1, 1, 1, 3), mode="bilinear",
-                            padding_mode="border", align_corners=True)
-        return out.reshape(g.shape[:-1]) * inside + 1.0
+        gk = g if self._all_multi else g * self._coord_keep
+        out = F.grid_sample(self._free_inp, gk.reshape(1, -1, 1, 1, 3), mode="bilinear", padding_mode="border",
+                            align_corners=True).reshape(g.shape[:-1])
+        if not inside_known:
+            out = out * (g.abs() <= self._coord_bound).all(-1)
+        return out + 1.0
 
     @property
     def device(self) -> torch.device:
         return self.info.device
+
+    def __repr__(self) -> str:
+        return (f"InformationField(grid={self.grid!r}, total_info={self.total_info:.4g}, "
+                f"max_info={float(self.info.max()):.4g})")
 
     def semantics(self, x: torch.Tensor) -> torch.Tensor:
         """``p(S_x | X)`` at world points ``x (..., 3)`` -> ``(..., 3)`` (trilinear; free outside W)."""

@@ -152,8 +152,10 @@ class StochasticDynamics:
         grow = torch.tensor([grid.resolution if k > 1 else 0.0 for k in grid.shape], device=device, dtype=dtype)
         self._box_lo = field.active_lower.to(device=device, dtype=dtype) - grow
         self._box_hi = field.active_upper.to(device=device, dtype=dtype) + grow
+        self._ws_box = (grid.lower.to(device=device, dtype=dtype), grid.upper.to(device=device, dtype=dtype))
         self.elapsed = 0.0  # accumulated seconds spent in __call__
         self.contacts = 0  # number of sampled contacts (diagnostics)
+        self.cull_fraction = 0.6  # 3-D look-ups: mask out-of-box points when fewer than this share are in it
 
     def _points_for(self, state: torch.Tensor) -> tuple[torch.Tensor, bool]:
         """Robot points that can ever be in the box (exact pruning, planar action spaces) and whether they all
@@ -219,16 +221,27 @@ class StochasticDynamics:
             p_free = self.field.sample_free(torch.stack([gx, gy], dim=-1))  # (A, M)
         else:
             gz = pts[:, 2] * sc[2] + b[:, 2:3]
-            # exact culling: points above / below the particles' neighbourhood read p(free) = 1
-            zlo, zhi = self._box_lo[2] * sc[2] + off[2], self._box_hi[2] * sc[2] + off[2]
-            keep = (gz >= zlo) & (gz <= zhi)
-            if float(keep.float().mean()) > 0.6:
-                p_free = self.field.sample_free(torch.stack([gx, gy, gz], dim=-1))  # (A, M)
+            # every point of every near rollout inside the workspace box? then skip the per-point outside test
+            pos = qn[:, :3] - dn
+            rxy = float(pts[:, :2].norm(dim=-1).max())
+            lo, up = self._ws_box
+            inside_known = bool(((pos[:, :2] - rxy >= lo[:2]).all() & (pos[:, :2] + rxy <= up[:2]).all()
+                                 & (pos[:, 2] + pts[:, 2].min() >= lo[2]).all()
+                                 & (pos[:, 2] + pts[:, 2].max() <= up[2]).all()))
+            # exact culling: points above / below the particles' neighbourhood read p(free) = 1; count them per
+            # rollout from the sorted point heights first (cheap) and mask only when enough points drop out
+            hz = pts[:, 2].sort().values
+            n_in = (torch.searchsorted(hz, self._box_hi[2] - pos[:, 2], right=True)
+                    - torch.searchsorted(hz, self._box_lo[2] - pos[:, 2]))
+            if float(n_in.sum()) > self.cull_fraction * gz.numel():
+                p_free = self.field.sample_free(torch.stack([gx, gy, gz], dim=-1), inside_known)  # (A, M)
             else:
+                zlo, zhi = self._box_lo[2] * sc[2] + off[2], self._box_hi[2] * sc[2] + off[2]
+                keep = (gz >= zlo) & (gz <= zhi)
                 p_free = torch.ones_like(gz)
                 g = torch.stack([gx[keep], gy[keep], gz[keep]], dim=-1)
                 if g.shape[0]:
-                    p_free[keep] = self.field.sample_free(g)
+                    p_free[keep] = self.field.sample_free(g, inside_known)
         pmin, i = p_free.min(dim=1)  # line 3
         r = torch.rand(A, generator=self.generator, device=q.device, dtype=q.dtype)
         contact = r >= pmin  # line 4-5: s != free with probability 1 - p(free)

@@ -100,14 +100,15 @@ class RummageEnv:
         self.seed = int(seed)
         self.start_noise = float(start_noise)
         self.object = objects.load(spec.object_name)
-        self.model = build_scene(spec.object_name, self.object.mesh_path)
+        self._upright = bool(spec.se2)  # SE(2) search <=> the object is kept upright (RUMI V-B)
+        self.model = build_scene(spec.object_name, self.object.mesh_path, upright=self._upright)
         self.data = mujoco.MjData(self.model)
         m = self.model
         self._site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "ee")
         jids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in ARM_JOINTS]
         self._qadr = m.jnt_qposadr[jids]
         self._vadr = m.jnt_dofadr[jids]
-        oj = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "object_free")
+        oj = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "object_x" if self._upright else "object_free")
         self._obj_qadr = int(m.jnt_qposadr[oj])
         self._obj_vadr = int(m.jnt_dofadr[oj])
         self._obj_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "object")
@@ -166,10 +167,14 @@ class RummageEnv:
             T0[:3, :3] = yaw_rotation(dyaw / 10.0) @ T0[:3, :3]
             T0[:2, 3] += (dx, dy)
         T0[2, 3] += 0.0005  # start just above the table
-        quat = np.zeros(4)
-        mujoco.mju_mat2Quat(quat, T0[:3, :3].reshape(-1))
-        d.qpos[self._obj_qadr:self._obj_qadr + 3] = T0[:3, 3]
-        d.qpos[self._obj_qadr + 3:self._obj_qadr + 7] = quat
+        if self._upright:  # x, y, z, yaw joints (an upright start rotation is a pure yaw)
+            d.qpos[self._obj_qadr:self._obj_qadr + 3] = T0[:3, 3]
+            d.qpos[self._obj_qadr + 3] = math.atan2(T0[1, 0], T0[0, 0])
+        else:
+            quat = np.zeros(4)
+            mujoco.mju_mat2Quat(quat, T0[:3, :3].reshape(-1))
+            d.qpos[self._obj_qadr:self._obj_qadr + 3] = T0[:3, 3]
+            d.qpos[self._obj_qadr + 3:self._obj_qadr + 7] = quat
         # arm: IK from the nominal posture to the start ee pose
         ee0 = np.array(s.ee_start, float)
         if s.action_space == "planar":

@@ -100,7 +100,7 @@ def compute_reachability(points: torch.Tensor, config: ReachabilityConfig = Reac
 def _key(lower, upper, planar: bool, config: ReachabilityConfig) -> str:
     h = hashlib.sha256()
     h.update((ASSET_DIR / "model.urdf").read_bytes())
-    h.update(json.dumps({"base": BASE_POS, "flange": FLANGE_OFFSET, "gripper": dataclasses.asdict(GRIPPER),
+    h.update(json.dumps({"base": BASE_POS, "flange": FLANGE_OFFSET, "gripper": {"length": GRIPPER.length},  # r(x) only sees the tip offset
                          "lower": [round(float(v), 6) for v in lower], "upper": [round(float(v), 6) for v in upper],
                          "planar": planar, "cfg": dataclasses.asdict(config), "v": 1}, sort_keys=True).encode())
     return h.hexdigest()[:20]

@@ -49,7 +49,9 @@ class GripperGeometry:
     """
 
     pad_half: tuple[float, float, float] = (0.040, 0.0175, 0.055)
-    pad_centre_y: float = 0.0475  # pads at y = +-0.0475 (30 mm gap between their inner faces)
+    # Pads at y = +-0.0195: a 4 mm gap between their inner faces, like the nearly touching bubbles of Fig. 9.
+    # (A wider gap traps the mug handle between the pads and the robot then drags the mug off the shelf.)
+    pad_centre_y: float = 0.0195
     palm_half: tuple[float, float, float] = (0.030, 0.075, 0.020)
     adaptor_radius: float = 0.035
     adaptor_half_height: float = 0.015

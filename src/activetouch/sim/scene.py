@@ -136,7 +136,7 @@ def _add_gripper(link7: ET.Element, g: GripperGeometry) -> None:
 
 def build_scene(object_name: str, mesh_path: pathlib.Path | str, layout: SceneLayout = SceneLayout(),
                 gripper: GripperGeometry = GRIPPER, timestep: float = 0.002,
-                probe_radius: float | None = None) -> mujoco.MjModel:
+                probe_radius: float | None = None, upright: bool = False) -> mujoco.MjModel:
     """Compile the scene for one object.
 
     Args:
@@ -144,8 +144,11 @@ def build_scene(object_name: str, mesh_path: pathlib.Path | str, layout: SceneLa
         mesh_path: exact watertight mesh (object frame), used for the visual geom and the inertia.
         probe_radius: add a mocap body ``probe`` with a sphere of this radius that collides with the
             object like the robot does (for tests of the collision geometry).
+        upright: keep the object upright (tasks with SE(2) pose search: mug, drill, as the paper assumes):
+            joints slide x, slide y, slide z and hinge z (``object_x``, ``object_y``, ``object_z``,
+            ``object_yaw``, consecutive in ``qpos``) instead of a free joint, so pushes cannot tip it over.
     Returns:
-        the compiled ``MjModel``. Names: body ``object`` (free joint ``object_free``), geom
+        the compiled ``MjModel``. Names: body ``object`` (free joint ``object_free`` or the upright joints), geom
         ``object_visual``, site ``ee``, actuators ``act_1..7``.
     """
     if object_name not in OBJECT_PHYSICS:
@@ -224,8 +227,13 @@ def build_scene(object_name: str, mesh_path: pathlib.Path | str, layout: SceneLa
     mp.density = phys.mass / mesh.volume
     com = mp.center_mass
     inertia = mp.moment_inertia  # about the centre of mass, object axes
-    obj = ET.SubElement(world, "body", name="object", pos="0.4 0 0")
-    ET.SubElement(obj, "freejoint", name="object_free")
+    obj = ET.SubElement(world, "body", name="object", pos="0 0 0" if upright else "0.4 0 0")
+    if upright:
+        for name, kind, axis in (("object_x", "slide", "1 0 0"), ("object_y", "slide", "0 1 0"),
+                                 ("object_z", "slide", "0 0 1"), ("object_yaw", "hinge", "0 0 1")):
+            ET.SubElement(obj, "joint", name=name, type=kind, axis=axis, damping="0", armature="0")
+    else:
+        ET.SubElement(obj, "freejoint", name="object_free")
     ET.SubElement(obj, "inertial", pos=_fmt(com), mass=f"{phys.mass}",
                   fullinertia=_fmt([inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2],
                                     inertia[1, 2]]))
