@@ -32,13 +32,16 @@ class TactileSensor:
     Args:
         obj: the ``KnownObject`` (needs ``.sdf`` and ``.bounds``).
         band: contact band half-width (metres), 3 mm in the paper.
-        contact_spacing: spacing of the pad points ``h_I`` used for contact (finer than the planner's).
+        contact_spacing: spacing of the pad points ``h_I`` used for contact (finer than the planner's). 2 mm
+            = the surface downsampling r_d,s of Table IV, so a contact gives a dense patch of surface points like
+            the soft-bubble sensors' depth cameras do (4 mm gave ~4x fewer points: too few for the resampling
+            trigger l_r = 5 to fire after a push).
         free_spacing: spacing of ``h`` used for free-space points.
         shell: only pad points within this distance of the pad boundary are tested for contact: the
             pads are rigid, so deeper points are farther than ``band`` from any object surface.
     """
 
-    def __init__(self, obj, band: float = 0.003, contact_spacing: float = 0.004, free_spacing: float = 0.01,
+    def __init__(self, obj, band: float = 0.003, contact_spacing: float = 0.002, free_spacing: float = 0.01,
                  shell: float = 0.006, geometry: GripperGeometry = GRIPPER):
         if not band > 0:
             raise ValueError(f"band must be > 0, got {band}")
