@@ -428,3 +428,19 @@ def test_se3_resample_optimises_full_poses(mug, T_true, camera_X, handle_X):
     R = b.poses[:, :3, :3]
     torch.testing.assert_close(R @ R.transpose(-1, -2), torch.eye(3).expand(10, 3, 3), atol=1e-5, rtol=0)
     assert float(metrics.rotation_error(b.poses, T_true).median()) < float(metrics.rotation_error(poses, T_true).median())
+
+
+def test_resting_face_prior_covers_the_six_faces_on_the_table():
+    from activetouch.belief import resting_face_prior
+
+    box = objects.load("cracker_box")
+    v = torch.as_tensor(box.mesh.vertices, dtype=torch.float32)
+    P = resting_face_prior(torch.tensor([0.4, 0.1, 0.0]), box.mesh.vertices, n=600,
+                           generator=torch.Generator().manual_seed(0))
+    world = transform_points(P, v)
+    assert torch.allclose(world[..., 2].min(dim=1).values, torch.zeros(600), atol=1e-5)  # resting on z = 0
+    down = P[:, :3, :3].transpose(1, 2) @ torch.tensor([0.0, 0.0, -1.0])  # object-frame axis pointing down
+    faces = {tuple(torch.round(d).int().tolist()) for d in down}
+    assert len(faces) == 6  # every face drawn
+    assert torch.allclose(P[:, :3, :3].det(), torch.ones(600), atol=1e-5)
+    assert abs(float(P[:, 0, 3].mean()) - 0.4) < 0.01 and 0.04 < float(P[:, 1, 3].std()) < 0.06

@@ -60,9 +60,13 @@ def _print_summary(s: dict, out: Path) -> None:
     print(f"  final nll       {s['final_nll']:10.1f}")
     print(f"  cumulative nll  {s['cumulative_nll']:10.1f}")
     print(f"  steps           {s['steps']:10d}   converged (APC < beta_t l_c): {s['converged']}")
+    if s.get("final_mean_rot_err_deg") is not None:
+        print(f"  weighted rotation error {s['initial_mean_rot_err_deg']:.1f} deg at step 0 -> "
+              f"{s['final_mean_rot_err_deg']:.1f} deg at the end")
     if s.get("median_plan_s") is not None:
         print(f"  median plan s   {s['median_plan_s']:10.3f}")
-    print(f"  results in      {out}/ (steps.csv, summary.json, curves.png, belief.png)")
+    files = [f for f in ("steps.csv", "summary.json", "curves.png", "belief.png", "contact.png") if (out / f).exists()]
+    print(f"  results in      {out}/ ({', '.join(files)})")
 
 
 def cmd_run(a) -> int:

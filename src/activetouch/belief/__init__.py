@@ -13,7 +13,7 @@ from . import priors
 from .config import BeliefConfig
 from .discrepancy import discrepancy, point_costs
 from .particle_filter import ParticleBelief, boltzmann_weights
-from .priors import gaussian_yaw_prior, mug_prior
+from .priors import gaussian_yaw_prior, mug_prior, resting_face_prior
 from .resample import systematic_resample
 
 __all__ = [
@@ -24,6 +24,7 @@ __all__ = [
     "point_costs",
     "priors",
     "mug_prior",
+    "resting_face_prior",
     "gaussian_yaw_prior",
     "systematic_resample",
 ]

@@ -7,7 +7,7 @@ import torch
 
 from ..geometry import pose_from_xyz_yaw, yaw_matrix
 
-__all__ = ["mug_prior", "gaussian_yaw_prior"]
+__all__ = ["mug_prior", "gaussian_yaw_prior", "resting_face_prior", "resting_faces"]
 
 
 def _vec3(x, name: str) -> torch.Tensor:
@@ -70,3 +70,60 @@ def gaussian_yaw_prior(mean, sigma: float = 0.05, n: int = 100,
     t[:, :2] = t[:, :2] + xy
     yaw = _uniform_yaw(n, generator, m.dtype, m.device)
     return pose_from_xyz_yaw(t, yaw)
+
+
+def resting_faces(vertices) -> torch.Tensor:
+    """The 6 rotations ``(6, 3, 3)`` that rest an object on one of its bounding-box faces: each maps one of the
+    object's +-x, +-y, +-z axes to world -z (down), about which any yaw may follow."""
+    del vertices  # the faces of the object-frame bounding box are the axis directions themselves
+    rots = []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            down = torch.zeros(3, dtype=torch.float64)
+            down[axis] = sign  # object axis that should point down
+            # rotation taking `down` to -z: Rodrigues about (down x -z)
+            target = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+            v = torch.linalg.cross(down, target)
+            c = float(down @ target)
+            if float(v.norm()) < 1e-12:
+                R = torch.eye(3, dtype=torch.float64) if c > 0 else torch.diag(torch.tensor([1.0, -1.0, -1.0],
+                                                                                            dtype=torch.float64))
+            else:
+                K = torch.tensor([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]], dtype=torch.float64)
+                R = torch.eye(3, dtype=torch.float64) + K + K @ K / (1.0 + c)
+            rots.append(R)
+    return torch.stack(rots)
+
+
+def resting_face_prior(mean, vertices, sigma: float = 0.05, n: int = 100, table_z: float = 0.0,
+                       generator: torch.Generator | None = None) -> torch.Tensor:
+    """SE(3) prior ``(n, 4, 4)``: x, y ~ N(mean_xy, sigma^2), uniform yaw, and a uniformly drawn resting face.
+
+    The paper's prior for occluded objects is "N(0, 0.05) x N(0, 0.05) x 0 and uniformly random yaw (assuming
+    upright)"; for the SE(3) box tasks the diversity over which side lies on the floor then comes from CHSEL's
+    quality diversity over orientation (Alg. 1 line 2). When the camera sees no surface point CHSEL has nothing
+    to register and the upright-only prior could never represent a box lying on its back or side (sigma_R = 0),
+    so the SE(3) prior draws each particle's resting face uniformly from the six bounding-box faces, with the
+    height set so the object rests on ``table_z``.
+
+    Args:
+        mean: ``(3,)`` nominal position (its z is ignored: the height follows from the face).
+        vertices: ``(V, 3)`` object-frame mesh vertices.
+    """
+    n = _check_n(n)
+    m = _vec3(mean, "mean")
+    if not math.isfinite(float(sigma)) or float(sigma) < 0:
+        raise ValueError(f"sigma must be finite and >= 0, got {sigma!r}")
+    verts = torch.as_tensor(vertices, dtype=torch.float64)
+    faces = resting_faces(verts)  # (6, 3, 3)
+    gdev = generator.device if generator is not None else torch.device("cpu")
+    face = torch.randint(0, 6, (n,), generator=generator, device=gdev).cpu()
+    yaw = _uniform_yaw(n, generator, torch.float64, "cpu")
+    xy = torch.randn(n, 2, generator=generator, device=gdev, dtype=torch.float64).cpu() * float(sigma)
+    R = yaw_matrix(yaw) @ faces[face]  # (n, 3, 3)
+    z = table_z - (verts @ R.transpose(1, 2))[..., 2].min(dim=1).values  # lowest point on the table
+    T = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
+    T[:, :3, :3] = R
+    T[:, :2, 3] = m[:2].to(torch.float64) + xy
+    T[:, 2, 3] = z
+    return T.to(device=m.device, dtype=m.dtype)

@@ -58,6 +58,17 @@ def draw_features(ax, features, *, max_free: int = 4000):
                        linewidths=0, zorder=3)
 
 
+def _footprint(obj, n: int) -> torch.Tensor:
+    """``(n, 3)`` object-frame surface points in a 1 cm band at mid height: a clean outline per particle
+    (body ring + handle for the mug) instead of a cloud of the whole surface."""
+    pts = obj.sample_surface(40 * n, seed=1)
+    lo, hi = (torch.as_tensor(b, dtype=pts.dtype) for b in obj.bounds)
+    band = pts[(pts[:, 2] - (lo[2] + hi[2]) / 2).abs() < 0.005]
+    if len(band) < n:
+        return pts[:n]
+    return band[torch.linspace(0, len(band) - 1, n).long()]
+
+
 def draw_particles(ax, obj, poses, weights, *, n_points: int = 150, true_pose=None, max_particles: int = 100,
                    cmap="viridis"):
     """Draw pose particles as object surface footprints coloured by weight (RUMI Fig. 6).
@@ -68,7 +79,7 @@ def draw_particles(ax, obj, poses, weights, *, n_points: int = 150, true_pose=No
         true_pose: optional ``(4, 4)`` ground truth, drawn as a black outline.
     """
     poses, weights = torch.as_tensor(poses), torch.as_tensor(weights)
-    pts = obj.sample_surface(n_points, seed=1).to(poses)
+    pts = _footprint(obj, n_points).to(poses)
     order = torch.argsort(weights)  # heaviest drawn last (on top)
     if len(order) > max_particles:
         order = order[-max_particles:]

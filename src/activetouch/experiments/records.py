@@ -15,7 +15,7 @@ from typing import Any, Iterable, Sequence
 
 STEP_COLUMNS: tuple[str, ...] = (
     "step", "nll", "apc", "n_features", "n_surface", "in_contact", "resampled", "active_share",
-    "trans_err", "rot_err_deg", "replanned", "plan_s", "field_s", "dynamics_s", "cost_s", "update_s", "step_s",
+    "trans_err", "rot_err_deg", "mean_rot_err_deg", "replanned", "plan_s", "field_s", "dynamics_s", "cost_s", "update_s", "step_s",
 )
 
 

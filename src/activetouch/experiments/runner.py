@@ -69,6 +69,10 @@ def build_prior(env, features, n: int, generator: torch.Generator, device="cpu")
         centre = nominal.clone()
         centre[:2] = _circle_centre(surf[:, :2]).to(centre)
         return priors.mug_prior(centre, n, generator=generator, axis_offset=_body_axis(obj))
+    if not spec.se2:  # SE(3) search (box): also draw the resting face, see priors.resting_face_prior
+        # the table top is z = 0 (TaskSpec.start_pose rests the object's lowest point there)
+        return priors.resting_face_prior(nominal, obj.mesh.vertices, sigma=spec.prior_sigma, n=n, table_z=0.0,
+                                         generator=generator).to(device)
     return priors.gaussian_yaw_prior(nominal, sigma=spec.prior_sigma, n=n, generator=generator)
 
 
@@ -105,6 +109,8 @@ def _step_metrics(obj, belief, true_pose, device) -> dict[str, float]:
         "active_share": float(metrics.active_share(w)),
         "trans_err": float(metrics.translation_error(best, T)),
         "rot_err_deg": math.degrees(float(metrics.rotation_error(best, T))),
+        # weighted over all particles: small only when the belief is both concentrated and right
+        "mean_rot_err_deg": math.degrees(float((w * metrics.rotation_error(poses, T.expand_as(poses))).sum())),
     }
 
 
@@ -145,6 +151,8 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
         terminate = False
 
     snapshots: dict[str, Any] = {}
+    contact_story: dict[str, Any] = {}  # Fig. 6: before contact, at the first contact, after its update
+    prev_snapshot = None
     rows: list[dict[str, Any]] = []
     converged = False
     in_contact = False
@@ -160,7 +168,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
                "resampled": False}
         writer.write(row)
         rows.append(row)
-        snapshots["first"] = _snapshot(belief, X, info, planner)
+        snapshots["first"] = prev_snapshot = _snapshot(belief, X, info, planner)
         for t in range(1, T_max + 1):
             if terminate and m["apc"] < apc_stop:
                 converged = True
@@ -183,7 +191,13 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
                 belief.predict(dT_w, generator=gen)  # lines 11-13
             X = merge_obs(X, obs.features, belief.poses, obj, dT_w if moved else None,
                           r_free=bcfg.r_free, r_surface=bcfg.r_surface)  # line 14
+            if len(obs.features.surface) and "touch" not in contact_story and cfg.figures:  # first touch
+                contact_story.update(_touch_snapshots(belief, X, info, prev_snapshot))
             resampled = belief.update(X, generator=gen)  # lines 15-20
+            prev_snapshot = _snapshot(belief, X, info, None) if cfg.figures else None
+            if "touch" in contact_story and "after" not in contact_story:
+                contact_story["after"] = prev_snapshot
+                contact_story["resampled"] = resampled
             t3 = time.perf_counter()
             m = _step_metrics(obj, belief, info["true_pose"], device)
             row = {"step": t, **m, "n_features": len(X), "n_surface": len(X.surface), "in_contact": in_contact,
@@ -209,13 +223,15 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
         "steps": len(rows) - 1, "converged": converged, "final_apc": rows[-1]["apc"],
         "initial_nll": nlls[0], "prior_apc": apc_prior, "apc_termination": terminate,
         "final_trans_err": rows[-1]["trans_err"], "final_rot_err_deg": rows[-1]["rot_err_deg"],
+        "initial_mean_rot_err_deg": rows[0]["mean_rot_err_deg"], "final_mean_rot_err_deg": rows[-1]["mean_rot_err_deg"],
+        "min_mean_rot_err_deg": min(r["mean_rot_err_deg"] for r in rows),
         "median_plan_s": float(np.median(plan_times)) if plan_times else None,
         "wall_s": time.perf_counter() - t_episode,
         "config": asdict(cfg),
     }
     write_json_atomic(out / "summary.json", summary)
     if cfg.figures:
-        write_figures(out, env, obj, rows, snapshots, spec, apc_stop)
+        write_figures(out, env, obj, rows, snapshots, spec, apc_stop, contact_story)
     return summary
 
 
@@ -225,8 +241,22 @@ def _snapshot(belief, X, info, planner) -> dict[str, Any]:
             "true_pose": np.asarray(info["true_pose"]), "field": field}
 
 
-def write_figures(out: Path, env, obj, rows, snapshots, spec, apc_stop) -> list[Path]:
-    """NLL/APC curves and the information field + particles at the first and last step."""
+def _touch_snapshots(belief, X, info, before) -> dict[str, Any]:
+    """The particles before the first contact and re-weighed by the contact's features (Algorithm 2 on X_t,
+    without changing the belief), as in RUMI Fig. 6 (left, middle)."""
+    from activetouch.belief import boltzmann_weights
+
+    with torch.no_grad():
+        w = boltzmann_weights(belief.discrepancy(X), belief.config.lam)
+    story = {"touch": {**_snapshot(belief, X, info, None), "weights": w}}
+    if before is not None:
+        story["before"] = before
+    return story
+
+
+def write_figures(out: Path, env, obj, rows, snapshots, spec, apc_stop, contact_story=None) -> list[Path]:
+    """NLL/APC curves, the information field + particles at the first and last step, and (when the robot touched
+    the object) the particles before the first contact, weighed by it, and after its update (Fig. 6)."""
     from activetouch.experiments import plots
 
     paths = [plots.curves_figure(out / "curves.png", rows, nll_threshold=spec.nll_threshold, apc_threshold=apc_stop,
@@ -235,6 +265,12 @@ def write_figures(out: Path, env, obj, rows, snapshots, spec, apc_stop) -> list[
     for key, snap in snapshots.items():
         panels.append({**snap, "title": f"{key} step: information field + particles"})
     paths.append(plots.belief_figure(out / "belief.png", obj, panels, zoom=0.15))
+    if contact_story and "touch" in contact_story:
+        titles = {"before": "before contact", "touch": "weighed by the first contact",
+                  "after": "after the update (resampled)" if contact_story.get("resampled") else "after the update"}
+        story = [{**contact_story[k], "title": titles[k]} for k in ("before", "touch", "after") if k in contact_story]
+        paths.append(plots.belief_figure(out / "contact.png", obj, story, zoom=0.08,
+                                         title=f"{spec.name}: particles coloured by weight around the first contact"))
     return paths
 
 
