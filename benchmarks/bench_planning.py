@@ -10,20 +10,21 @@ Each "step" perturbs the particle weights (so the field is recomputed, as after 
 planning call (one KMPPI iteration after the warm start). Prints the median / mean split into field cache,
 dynamics and cost, for the configured thread count and device.
 
-Measured 2026-11-22 on this project's 2-core CPU box (torch 2.13 CPU, other jobs running; medians over 10 steps,
-one KMPPI iteration per planning call, paper parameters, P = 100):
+Measured 2026-11-22 on this project's 2-core CPU box (torch 2.13 CPU, other jobs running; medians over 5 steps,
+one KMPPI iteration per planning call, paper parameters, P = 100, --threads 1). CPU seconds
+(``time.process_time``, robust to the other jobs), before / after the exact lazy p(free) look-ups of the
+dynamics (planning.dynamics._FreeBounds), both measured in the same run:
 
-    task     start                threads  total   field   dynamics  cost
-    mug-0    ee_start (0.25,0.22)  2       0.29 s  0.03 s  0.20 s    0.05 s
-    mug-0    --near (8 cm away)    2       0.26 s  0.02 s  0.19 s    0.05 s
-    mug-0    ee_start              1       0.35 s  0.04 s  0.24 s    0.06 s
-    mug-0    --near                1       0.39 s  0.04 s  0.27 s    0.07 s
-    drill-0  ee_start (3-D)        2       3.3 s   0.12 s  3.1 s     0.16 s   (357 robot points, 40x40x10 grid)
+    task     gripper pts  grid        total         field   dynamics       cost   warm start (6 iters)
+    mug-0    1836 (2-D)   80x80x1     0.34 -> 0.24  0.04    0.24 -> 0.13   0.06   1.5 -> 1.1
+    box-0    357          40x40x10    4.2  -> 0.77  0.21    3.7  -> 0.35   0.21   22  -> 3.4
+    drill-0  357          40x40x10    4.0  -> 0.69  0.18    3.6  -> 0.31   0.19   23  -> 2.8
 
-The first call of an episode adds the warm start (5 more iterations): ~1.5 s for the mug, ~16 s for the drill.
-The paper reports 0.96 s per step on an RTX 4090. With 2 threads on a machine whose cores are busy with other
-processes, torch's OpenMP threads contend and the same call took ~5 s: use ``--threads 1`` (or
-``torch.set_num_threads(1)``) when the cores are shared.
+(wall times were 1.1 s / 1.0 s per box / drill call on the loaded machine). The paper reports 0.96 s (mug)
+and 2.19 s (3-D) per step on an RTX 4090. With 2 threads on a machine whose cores are busy with other
+processes, torch's OpenMP threads contend (busy-waiting: the box call then took 3.8 CPU s / 5.7 s wall):
+use ``--threads 1`` (or ``torch.set_num_threads(1)``) when the cores are shared. ``--no-screen`` runs the
+dynamics without the lazy look-ups (identical result; mug-0 --near: 0.39 CPU s total with them).
 
     python benchmarks/bench_planning.py [--task mug-0] [--steps 10] [--threads 1] [--device cpu] [--particles 100] [--near]
 """
@@ -86,11 +87,15 @@ def main(argv=None):
     ap.add_argument("--rollouts", type=int, default=5)
     ap.add_argument("--synthetic-reach", action="store_true", help="skip the (cached) IK reachability map")
     ap.add_argument("--near", action="store_true", help="start 8 cm in front of the mug (most rollouts touch it)")
+    ap.add_argument("--no-screen", action="store_true",
+                    help="look up p(free) at every robot point (StochasticDynamics.screen = False; same result)")
     ap.add_argument("--json", default=None, help="write the raw timings here")
     args = ap.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    from activetouch.planning import RumiPlanner, RumiPlannerConfig
+    from activetouch.planning import RumiPlanner, RumiPlannerConfig, StochasticDynamics
+
+    StochasticDynamics.screen = not args.no_screen
 
     obj, ws, h, mask, reach, poses, spec = build(args.device, args.particles, args.synthetic_reach, args.task)
     cfg = RumiPlannerConfig(num_samples=args.samples, rollout_samples=args.rollouts)
@@ -108,13 +113,15 @@ def main(argv=None):
     for _ in range(args.steps):
         w = torch.rand(args.particles, generator=gen) + 0.5
         w = (w / w.sum()).to(args.device)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         u, t = planner.plan(poses, w, ee)
         t["total_s"] = time.perf_counter() - t0
+        t["total_cpu_s"] = time.process_time() - c0
         rows.append(t)
         ee[0] += 0.08 * float(u[0]) / 4  # drift the start state a little, as execution would
         ee[1] += 0.08 * float(u[1]) / 4
-    keys = ["total_s", "field_s", "dynamics_s", "cost_s", "mppi_s"]
+    keys = ["total_s", "field_s", "dynamics_s", "cost_s", "mppi_s",
+            "total_cpu_s", "field_cpu_s", "dynamics_cpu_s", "cost_cpu_s", "mppi_cpu_s"]
     summary = {k: {"median": statistics.median(r[k] for r in rows),
                    "mean": statistics.fmean(r[k] for r in rows)} for k in keys}
     print(f"task={args.task} device={args.device} threads={torch.get_num_threads()} P={args.particles} K={args.samples} "
@@ -122,7 +129,7 @@ def main(argv=None):
           f"workspace={ws.shape} ee={[round(v, 3) for v in ee0]} "
           f"warm start ({cfg.warmstart_iters + 1} iterations)={warm:.2f}s")
     for k in keys:
-        print(f"  {k:11s} median {summary[k]['median']:.3f}s  mean {summary[k]['mean']:.3f}s")
+        print(f"  {k:15s} median {summary[k]['median']:.3f}s  mean {summary[k]['mean']:.3f}s")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"args": vars(args), "summary": summary, "rows": rows}, f, indent=1)

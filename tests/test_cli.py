@@ -25,3 +25,15 @@ def test_tasks_lists_nine(capsys):
     assert main(["tasks"]) == 0
     out = capsys.readouterr().out
     assert all(f"{o}-{i}" in out for o in ("mug", "drill", "box") for i in range(3))
+
+
+@pytest.mark.parametrize("args, message", [(["--steps", "0"], "steps must be"), (["--particles", "0"], "particles must"),
+                                           (["--seed", "-1"], "seed must")])
+def test_bad_episode_arguments_are_clear_errors(capsys, tmp_path, args, message):
+    assert main(["run", "mug-0", "--out", str(tmp_path), *args]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_unknown_task_is_a_clear_error(capsys, tmp_path):
+    assert main(["run", "mug-9", "--out", str(tmp_path)]) == 2
+    assert "unknown task 'mug-9'" in capsys.readouterr().err

@@ -135,25 +135,53 @@ def test_tangential_contact_holds_robot(field, gripper, workspace):
     assert dyn.contacts > 0
 
 
-def test_3d_point_culling_is_exact(field, gripper, workspace):
-    """3-D actions: skipping robot points above / below the particles' neighbourhood changes nothing."""
-    def run(cull):
-        dyn = StochasticDynamics(field, gripper, "3d", workspace.lower, workspace.upper,
+@pytest.mark.parametrize("action_space", ["3d", "planar"])
+def test_lazy_free_lookup_is_exact(field, gripper, workspace, action_space, monkeypatch):
+    """Skipping p(free) look-ups by lower bounds (rollout and point level) changes nothing, bit for bit."""
+    def run(screen):
+        monkeypatch.setattr(StochasticDynamics, "screen", screen)
+        dyn = StochasticDynamics(field, gripper, action_space, workspace.lower, workspace.upper,
                                  generator=torch.Generator().manual_seed(7))
-        dyn.cull_fraction = cull
         gen = torch.Generator().manual_seed(8)
         s = torch.zeros(300, 7)
         s[:, 0] = 0.30 + 0.06 * torch.rand(300, generator=gen)
         s[:, 1] = -0.05 + 0.1 * torch.rand(300, generator=gen)
-        s[:, 2] = 0.02 + 0.1 * torch.rand(300, generator=gen)
-        u = torch.rand(300, 4, generator=gen) * torch.tensor([1.0, 0.3, -0.5, 0.2])
-        for _ in range(2):
+        s[:, 2] = 0.02 + 0.1 * torch.rand(300, generator=gen) if action_space == "3d" else Z
+        nu = 4 if action_space == "3d" else 3
+        u = torch.rand(300, nu, generator=gen) * torch.tensor([1.0, 0.3, -0.5, 0.2][:nu])
+        for _ in range(3):
             s = dyn(s, u)
         return s, dyn.contacts
 
-    (a, ca), (b, cb) = run(-1.0), run(2.0)  # never / always mask
-    assert ca > 0 and ca == cb
+    (a, ca), (b, cb) = run(True), run(False)
+    assert ca > 20 and ca == cb
     assert torch.equal(a, b)
+    assert float((a[:, 4:].norm(dim=-1) > 0).float().mean()) > 0.05  # some rollouts pushed the object
+
+
+def test_free_lower_bounds_are_valid(field, gripper):
+    """The level-1 / level-2 bounds never exceed the trilinear p(free) they bound (random poses, yaws)."""
+    from activetouch.planning.dynamics import _FreeBounds
+
+    bounds = _FreeBounds(field, gripper.points)
+    gen = torch.Generator().manual_seed(3)
+    n = 400
+    pos = torch.stack([0.25 + 0.3 * torch.rand(n, generator=gen), -0.15 + 0.3 * torch.rand(n, generator=gen),
+                       -0.01 + 0.12 * torch.rand(n, generator=gen)], -1)
+    yaw = 2 * math.pi * torch.rand(n, generator=gen)
+    tx, ty, tz = bounds.index_coords(gripper.points, yaw, pos)
+    exact = bounds.exact(tx, ty, tz, planar_layer=False)  # (n, M)
+    ee = torch.cat([pos, yaw[:, None]], -1)
+    assert torch.allclose(exact, field.free_probability(GripperModel.transform(gripper.points, ee)), atol=1e-5)
+    assert float(exact.min()) < 0.5  # the sample reaches the object
+    point_lb = bounds.point_lower_bound(tx, ty, tz)
+    assert bool((point_lb <= exact + bounds.tol).all())
+    rollout_lb = bounds.rollout_lower_bound(pos)
+    assert bool((rollout_lb <= exact.min(dim=1).values + bounds.tol).all())
+    assert bool((rollout_lb <= point_lb.min(dim=1).values).all())
+    # not vacuous: far from the mug both bounds are 1
+    far = bounds.rollout_lower_bound(torch.tensor([[0.12, -0.28, 0.05]]))
+    assert float(far) == 1.0
 
 
 def test_dynamics_seeded_and_validated(field, gripper, workspace):

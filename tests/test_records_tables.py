@@ -34,7 +34,7 @@ def test_summary_marks_episode_finished(tmp_path):
 
 def _summary(task, method, seed, success, cum):
     return {"task": task, "method": method, "seed": seed, "success": success, "cumulative_nll": cum,
-            "median_plan_s": 0.3}
+            "median_plan_s": 0.3, "initial_nll": 30.0, "final_mean_rot_err_deg": 2.0 * seed}
 
 
 def test_aggregate_counts_successes_with_wilson_interval():
@@ -43,6 +43,7 @@ def test_aggregate_counts_successes_with_wilson_interval():
     a = agg[("mug-0", "rumi")]
     assert (a["successes"], a["runs"]) == (9, 10)
     assert a["median_cumulative_nll"] == pytest.approx(550.0)
+    assert (a["rot_successes"], a["rot_runs"]) == (5, 10)  # rotation errors 0, 2, ..., 18 deg: 5 below 10
     assert 0.55 < a["wilson_lo"] < 0.6 and 0.98 < a["wilson_hi"] <= 1.0
     table = markdown_table(ss)
     assert "| mug-0 | rumi | 9/10 |" in table and "| 9/10 |" in table  # ours and the paper's Table V value

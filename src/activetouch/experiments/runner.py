@@ -46,6 +46,18 @@ class EpisodeConfig:
     figures: bool = True
     progress: bool = True
 
+    def __post_init__(self):
+        if self.steps is not None and (not isinstance(self.steps, int) or self.steps < 1):
+            raise ValueError(f"steps must be a positive int or None, got {self.steps!r}")
+        if not isinstance(self.particles, int) or self.particles < 1:
+            raise ValueError(f"particles must be a positive int, got {self.particles!r}")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative int, got {self.seed!r}")
+        if not (0 < self.beta_t < 1):
+            raise ValueError(f"beta_t must be in (0, 1), got {self.beta_t!r}")
+        if self.chsel_iterations < 1:
+            raise ValueError(f"chsel_iterations must be >= 1, got {self.chsel_iterations!r}")
+
 
 def _as_tensor(x, device) -> torch.Tensor:
     return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=device)

@@ -188,7 +188,8 @@ class RumiCost:
     """Eq. 31: ``C = beta_I C_I + beta_R C_R`` as a KMPPI terminal cost over whole trajectories.
 
     Callable as ``cost(states (M, K, H, 7), actions) -> (M, K)`` (pytorch_mppi's terminal_state_cost);
-    ``evaluate(states (S, H, 7)) -> (S,)`` for flat batches. Accumulates its run time in ``elapsed``.
+    ``evaluate(states (S, H, 7)) -> (S,)`` for flat batches. Accumulates its run time in ``elapsed`` (wall) and
+    ``elapsed_cpu`` (process CPU time).
     """
 
     def __init__(self, info_cost: InformationCost | None, reach_cost: ReachabilityCost | None, beta_I: float,
@@ -202,6 +203,7 @@ class RumiCost:
         self.beta_I = float(beta_I)
         self.beta_R = float(beta_R)
         self.elapsed = 0.0
+        self.elapsed_cpu = 0.0  # process CPU seconds
 
     def evaluate(self, states: torch.Tensor) -> torch.Tensor:
         states = _check_states(states)
@@ -213,8 +215,9 @@ class RumiCost:
         return c
 
     def __call__(self, states: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         lead = states.shape[:-2]
         c = self.evaluate(states.reshape(-1, *states.shape[-2:])).reshape(lead)
         self.elapsed += time.perf_counter() - t0
+        self.elapsed_cpu += time.process_time() - c0
         return c

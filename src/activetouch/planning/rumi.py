@@ -244,22 +244,23 @@ class RumiPlanner:
         ``poses``/``weights`` None plans on the field given to :meth:`set_field`.
         Runs the warm start on the first call of an episode, then ``iterations_per_plan`` KMPPI iterations.
         Returns ``(u (Nu,) numpy in [u_min, u_max], timings)`` with timings (seconds) ``field_s``,
-        ``dynamics_s``, ``cost_s``, ``mppi_s`` (whole KMPPI time) and ``plan_iters``. ``features`` is unused:
-        RUMI's fields depend on the observations only through the particles (Eq. 23, 27).
+        ``dynamics_s``, ``cost_s``, ``mppi_s`` (whole KMPPI time), ``plan_iters`` and the process CPU times
+        ``field_cpu_s``, ``dynamics_cpu_s``, ``cost_cpu_s``, ``mppi_cpu_s`` (robust to other jobs on the machine).
+        ``features`` is unused: RUMI's fields depend on the observations only through the particles (Eq. 23, 27).
         The returned action is treated as executed (the nominal trajectory is shifted by one step);
         the remaining planned actions are available as :attr:`planned_actions`.
         """
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         if (poses is None) != (weights is None):
             raise ValueError("give both poses and weights (or neither, to plan on the field set with set_field)")
         if poses is not None:
             self.update_field(poses, weights)
         elif self.field is None:
             raise ValueError("plan needs poses and weights (or a field given with set_field)")
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         state = self._state(ee_state)
-        self._dynamics.elapsed = 0.0
-        self._cost.elapsed = 0.0
+        self._dynamics.elapsed = self._dynamics.elapsed_cpu = 0.0
+        self._cost.elapsed = self._cost.elapsed_cpu = 0.0
         iters = self.config.iterations_per_plan + (0 if self._warm else self.config.warmstart_iters)
         for _ in range(iters):
             self.mppi.command(state, shift_nominal_trajectory=False)
@@ -267,9 +268,11 @@ class RumiPlanner:
         U = self.mppi.U.detach().clamp(self.config.u_min, self.config.u_max).cpu().numpy().astype(np.float32)
         self.planned_actions = U
         self.mppi.shift_nominal_trajectory()  # u_1 is executed: u_2..H, 0 is the next nominal trajectory
-        t2 = time.perf_counter()
+        t2, c2 = time.perf_counter(), time.process_time()
         self.last_timing = {"field_s": t1 - t0, "dynamics_s": self._dynamics.elapsed, "cost_s": self._cost.elapsed,
-                            "mppi_s": t2 - t1, "plan_iters": float(iters)}
+                            "mppi_s": t2 - t1, "plan_iters": float(iters),
+                            "field_cpu_s": c1 - c0, "dynamics_cpu_s": self._dynamics.elapsed_cpu,
+                            "cost_cpu_s": self._cost.elapsed_cpu, "mppi_cpu_s": c2 - c1}
         u = U[0].copy()
         if not np.isfinite(u).all():
             raise RuntimeError("KMPPI produced a non-finite action")
@@ -299,5 +302,6 @@ class RumiPlanner:
         u = self._queue.pop(0).copy()
         self.mppi.shift_nominal_trajectory()
         self._since_plan += 1
-        return u, {"field_s": 0.0, "dynamics_s": 0.0, "cost_s": 0.0, "mppi_s": 0.0, "plan_iters": 0.0,
-                   "replanned": 0.0}
+        zero = ("field_s", "dynamics_s", "cost_s", "mppi_s", "plan_iters", "field_cpu_s", "dynamics_cpu_s",
+                "cost_cpu_s", "mppi_cpu_s", "replanned")
+        return u, dict.fromkeys(zero, 0.0)
