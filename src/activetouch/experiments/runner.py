@@ -190,14 +190,16 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
             t1 = time.perf_counter()
             if t == 1:
                 snapshots["first"] = _snapshot(belief, X, info, planner)
+            ee_before = _as_tensor(env.ee_pose(), device)
             obs, _, terminated, truncated, info = env.step(u)  # lines 7-9
             in_contact = bool(obs.in_contact)
             t2 = time.perf_counter()
             dT_w = None
             if obs.dT is not None:
                 dT_w = _as_tensor(obs.dT, device)
-            elif in_contact:
-                _, dT_w = belief.obj_move(X, obs.features, _as_tensor(np.eye(4), device))  # line 10
+            elif in_contact:  # line 10: ObjMove from the sticking-contact prior dT_r = the ee motion (line 9)
+                dT_r = _as_tensor(obs.ee_pose, device) @ torch.linalg.inv(ee_before)
+                _, dT_w = belief.obj_move(X, obs.features, dT_r)
             moved = dT_w is not None and _is_motion(dT_w, cfg.motion_tol_m, cfg.motion_tol_rad)
             if moved:
                 belief.predict(dT_w, generator=gen)  # lines 11-13
