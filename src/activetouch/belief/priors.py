@@ -72,10 +72,9 @@ def gaussian_yaw_prior(mean, sigma: float = 0.05, n: int = 100,
     return pose_from_xyz_yaw(t, yaw)
 
 
-def resting_faces(vertices) -> torch.Tensor:
-    """The 6 rotations ``(6, 3, 3)`` that rest an object on one of its bounding-box faces: each maps one of the
-    object's +-x, +-y, +-z axes to world -z (down), about which any yaw may follow."""
-    del vertices  # the faces of the object-frame bounding box are the axis directions themselves
+def resting_faces() -> torch.Tensor:
+    """The 6 rotations ``(6, 3, 3)`` that rest an object on one of its (object-frame, axis-aligned) bounding-box
+    faces: each maps one of the object's +-x, +-y, +-z axes to world -z (down), about which any yaw may follow."""
     rots = []
     for axis in range(3):
         for sign in (1.0, -1.0):
@@ -115,7 +114,7 @@ def resting_face_prior(mean, vertices, sigma: float = 0.05, n: int = 100, table_
     if not math.isfinite(float(sigma)) or float(sigma) < 0:
         raise ValueError(f"sigma must be finite and >= 0, got {sigma!r}")
     verts = torch.as_tensor(vertices, dtype=torch.float64)
-    faces = resting_faces(verts)  # (6, 3, 3)
+    faces = resting_faces()  # (6, 3, 3)
     gdev = generator.device if generator is not None else torch.device("cpu")
     face = torch.randint(0, 6, (n,), generator=generator, device=gdev).cpu()
     yaw = _uniform_yaw(n, generator, torch.float64, "cpu")

@@ -107,8 +107,8 @@ def _circle_centre(xy: torch.Tensor) -> torch.Tensor:
 
 def _is_motion(dT: torch.Tensor, tol_m: float, tol_rad: float) -> bool:
     """Whether a ``(4, 4)`` rigid motion moves more than ``tol_m`` or turns more than ``tol_rad``."""
-    cos = ((torch.diagonal(dT[:3, :3]).sum() - 1.0) / 2.0).clamp(-1.0, 1.0)
-    return bool(dT[:3, 3].norm() > tol_m or torch.arccos(cos) > tol_rad)
+    eye = torch.eye(4, dtype=dT.dtype, device=dT.device)
+    return bool(metrics.translation_error(dT, eye) > tol_m or metrics.rotation_error(dT, eye) > tol_rad)
 
 
 def _step_metrics(obj, belief, true_pose, device) -> dict[str, float]:

@@ -167,13 +167,12 @@ class RummageEnv:
             T0[:3, :3] = yaw_rotation(dyaw / 10.0) @ T0[:3, :3]
             T0[:2, 3] += (dx, dy)
         T0[2, 3] += 0.0005  # start just above the table
+        d.qpos[self._obj_qadr:self._obj_qadr + 3] = T0[:3, 3]
         if self._upright:  # x, y, z, yaw joints (an upright start rotation is a pure yaw)
-            d.qpos[self._obj_qadr:self._obj_qadr + 3] = T0[:3, 3]
             d.qpos[self._obj_qadr + 3] = math.atan2(T0[1, 0], T0[0, 0])
         else:
             quat = np.zeros(4)
             mujoco.mju_mat2Quat(quat, T0[:3, :3].reshape(-1))
-            d.qpos[self._obj_qadr:self._obj_qadr + 3] = T0[:3, 3]
             d.qpos[self._obj_qadr + 3:self._obj_qadr + 7] = quat
         # arm: IK from the nominal posture to the start ee pose
         ee0 = np.array(s.ee_start, float)
