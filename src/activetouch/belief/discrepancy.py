@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import torch
 
-from ..geometry import check_poses
+from ..geometry import check_poses, near_any
 
 __all__ = ["discrepancy", "point_costs", "prune_far_free", "SURFACE", "FREE", "OCCUPIED"]
 
@@ -120,27 +120,6 @@ def discrepancy(
     return torch.relu(v - o1) @ k1 + torch.relu(-v - o2) @ k2
 
 
-def bounding_radius(obj) -> float:
-    """Radius ``R`` of the smallest origin-centred ball holding the object (max vertex norm), metres."""
-    r = getattr(obj, "_activetouch_bounding_radius", None)
-    if r is None:
-        r = float(torch.as_tensor(obj.mesh.vertices).norm(dim=-1).max())
-        try:
-            obj._activetouch_bounding_radius = r
-        except AttributeError:  # pragma: no cover - objects with __slots__
-            pass
-    return r
-
-
-@torch.no_grad()
-def _near_any_origin(x: torch.Tensor, origins: torch.Tensor, radius: float, chunk: int = 65536) -> torch.Tensor:
-    """``(N,)`` mask of points ``x (N, 3)`` within ``radius`` of at least one of ``origins (P, 3)``."""
-    out = torch.empty(x.shape[0], dtype=torch.bool, device=x.device)
-    for i in range(0, x.shape[0], chunk):
-        out[i:i + chunk] = torch.cdist(x[i:i + chunk], origins).min(dim=1).values <= radius
-    return out
-
-
 def prune_far_free(obj, features, poses: torch.Tensor):
     """Drop free features that cannot cost anything for any particle (exact, a speed-up only).
 
@@ -157,7 +136,7 @@ def prune_far_free(obj, features, poses: torch.Tensor):
         return features
     x = features.positions.to(poses.device, poses.dtype)
     origins = poses[:, :3, 3].detach()
-    keep = ~free.to(poses.device) | _near_any_origin(x, origins, bounding_radius(obj))
+    keep = ~free.to(poses.device) | near_any(x, origins, obj.bounding_radius)
     if bool(keep.all()):
         return features
     return features.select(keep.to(features.positions.device))

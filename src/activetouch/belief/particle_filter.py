@@ -190,7 +190,7 @@ class ParticleBelief:
         self._weights = torch.full_like(self._weights, 1.0 / self.num_particles)
 
     # ------------------------------------------------------------------ Algorithm 1 lines 11-13
-    def predict(self, dT: torch.Tensor, generator: torch.Generator | None = None) -> None:
+    def predict(self, dT: torch.Tensor, generator: torch.Generator | None = None, noise: bool = True) -> None:
         """Prediction step: ``T_i <- dT_sigma . dT . T_i`` (Algorithm 1 lines 11-13).
 
         Args:
@@ -198,6 +198,8 @@ class ParticleBelief:
                 :meth:`obj_move`). With ``config.se2`` it is projected onto a planar motion (yaw about world
                 z, x-y translation) so particles stay upright at their height.
             generator: torch generator for PerturbTransform (Algorithm 3).
+            noise: False applies ``dT`` exactly (``dT_sigma = I``): for motions too small to count as the
+                object "moving" in Alg. 1 line 11 (physics settling) that must still carry the particles along.
         The perturbation ``dT_sigma`` is applied about each particle's own origin (see
         :func:`activetouch.belief.resample.apply_perturbation`).
         """
@@ -208,7 +210,9 @@ class ParticleBelief:
         if self.config.se2:
             dT = project_se2_motion(dT)
         moved = dT @ self._poses
-        self._poses = perturb_poses(moved, self.config.sigma_t, self.config.sigma_R, self.config.se2, generator)
+        if noise:
+            moved = perturb_poses(moved, self.config.sigma_t, self.config.sigma_R, self.config.se2, generator)
+        self._poses = moved
         self._check_invariants()
 
     # ------------------------------------------------------------------ Algorithm 5

@@ -1,5 +1,6 @@
 """Rigid transforms (SE(3)/SE(2) pose batches) and voxel grids."""
-from . import transforms, voxel
+from . import proximity, transforms, voxel
+from .proximity import near_any
 from .transforms import (
     axis_angle_to_matrix,
     check_poses,
@@ -14,11 +15,13 @@ from .transforms import (
 from .voxel import VoxelGrid
 
 __all__ = [
+    "proximity",
     "transforms",
     "voxel",
     "VoxelGrid",
     "axis_angle_to_matrix",
     "check_poses",
+    "near_any",
     "invert",
     "make_pose",
     "perturb_transform",

@@ -143,6 +143,12 @@ class KnownObject:
         """Bounding-box diagonal ``l_c`` (m), RUMI's characteristic length."""
         return float(np.linalg.norm(self.mesh.bounds[1] - self.mesh.bounds[0]))
 
+    @functools.cached_property
+    def bounding_radius(self) -> float:
+        """Radius ``R`` (m) of the smallest ball about the object-frame origin that holds the mesh (max vertex
+        norm): a world point farther than ``R`` from a pose's origin is outside the object in that pose."""
+        return float(np.linalg.norm(np.asarray(self.mesh.vertices), axis=1).max())
+
     def sample_surface(self, n: int, seed: int = 0) -> torch.Tensor:
         """``n`` points uniformly (by area) on the surface, object frame ``(n, 3)`` float32; seeded."""
         if not isinstance(n, (int, np.integer)) or n < 0:

@@ -7,30 +7,45 @@ import torch
 
 from .features import Features, Semantics
 
-__all__ = ["voxel_downsample", "voxel_centres"]
+__all__ = ["voxel_downsample", "voxel_representatives"]
 
 
-def voxel_centres(positions: torch.Tensor, resolution: float) -> torch.Tensor:
-    """Centres ``(M, 3)`` of the occupied cells of a world-aligned grid of cell size ``resolution``.
-
-    The lattice is anchored at the world origin (cells ``[k r, (k+1) r)``), not at the data's minimum as
-    the paper's wording ("grids that span the range of the positions") could suggest: an anchored lattice
-    makes the downsampling idempotent, so merging observations step after step does not drift points by
-    half a cell each time. Output is sorted by cell index (deterministic).
-    """
+def _check_resolution(resolution: float) -> None:
     if not (math.isfinite(resolution) and resolution > 0):
         raise ValueError(f"downsample resolution must be finite and > 0, got {resolution}")
-    if positions.shape[0] == 0:
-        return positions.reshape(0, 3)
-    idx = torch.floor(positions.to(torch.float64) / resolution).to(torch.long)
-    cells = torch.unique(idx, dim=0)  # sorted lexicographically
-    return ((cells.to(torch.float64) + 0.5) * resolution).to(positions.dtype)
+
+
+def voxel_representatives(positions: torch.Tensor, resolution: float) -> torch.Tensor:
+    """Indices ``(M,)`` of one point per occupied cell: the point nearest its cell's centre.
+
+    World-aligned lattice anchored at the origin (cells ``[k r, (k+1) r)``); ties go to the lower index;
+    output sorted by cell index (deterministic). Keeping an observed point rather than the cell centre
+    matters in Algorithm 6: object-fixed features are moved by ``dT`` at every push and downsampled again;
+    snapping them to cell centres each time adds up to ``sqrt(3) r / 2`` of error per move, a random walk
+    that reached +-8 mm on the mug after 20 pushes. A kept point moves exactly with the object, a static set
+    is a fixed point (idempotent), and a free point is never replaced by an unobserved one (a free cell's
+    centre may lie inside the object).
+    """
+    _check_resolution(resolution)
+    n = positions.shape[0]
+    if n == 0:
+        return torch.zeros(0, dtype=torch.long, device=positions.device)
+    p = positions.to(torch.float64) / resolution
+    idx = torch.floor(p)
+    d2 = ((p - idx - 0.5) ** 2).sum(dim=1)  # squared distance to the own cell's centre (cell units)
+    _, cell = torch.unique(idx.to(torch.long), dim=0, return_inverse=True)  # cell ids sorted by cell index
+    order = torch.argsort(d2, stable=True)
+    order = order[torch.argsort(cell[order], stable=True)]  # by cell, then by distance, then by index
+    first = torch.ones(n, dtype=torch.bool, device=positions.device)
+    first[1:] = cell[order[1:]] != cell[order[:-1]]
+    return order[first]
 
 
 def voxel_downsample(
     features: Features, r_free: float = 0.010, r_surface: float = 0.002, r_occupied: float = 0.002
 ) -> Features:
-    """Downsample each semantics class on its own voxel grid and return the occupied cells' centres.
+    """Downsample each semantics class on its own voxel grid: one observed point per occupied cell, the one
+    nearest the cell centre (:func:`voxel_representatives`).
 
     Defaults are RUMI Table IV: ``r_{d,f} = 10 mm`` free, ``r_{d,s} = 2 mm`` surface (occupied uses the
     surface resolution). Output features are grouped by semantics value (SURFACE, FREE, OCCUPIED).
@@ -43,7 +58,7 @@ def voxel_downsample(
         sub = features.of(s)
         if len(sub) == 0:
             continue
-        c = voxel_centres(sub.positions, float(res[s]))
+        c = sub.positions[voxel_representatives(sub.positions, float(res[s]))]
         parts.append(Features._unchecked(c, torch.full((c.shape[0],), int(s), dtype=torch.long, device=c.device)))
     if not parts:
         return Features.empty(device=features.device, dtype=features.positions.dtype)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 
-from ..geometry.transforms import check_poses
+from ..geometry import check_poses, near_any
 from .downsample import voxel_downsample
 from .features import Features, Semantics
 
@@ -62,11 +62,15 @@ def merge_obs(
                 poses = poses.unsqueeze(0)
             if poses.ndim != 3:
                 raise ValueError(f"poses must have shape (P, 4, 4), got {tuple(poses.shape)}")
-            keep = torch.empty(len(free), dtype=torch.bool, device=dev)
+            keep = torch.ones(len(free), dtype=torch.bool, device=dev)
+            # only points within the bounding radius of some particle origin can be covered (exact pruning)
+            near = near_any(free.positions, poses[:, :3, 3].detach().to(free.positions), obj.bounding_radius)
+            idx = torch.nonzero(near).squeeze(1)
             with torch.no_grad():
-                for s in range(0, len(free), chunk):
-                    v, _ = obj.sdf_world(poses.detach(), free.positions[s : s + chunk])
-                    keep[s : s + chunk] = (v > 0).all(dim=0).to(dev)
+                for s in range(0, len(idx), chunk):
+                    sel = idx[s : s + chunk]
+                    v, _ = obj.sdf_world(poses.detach(), free.positions[sel])
+                    keep[sel] = (v > 0).all(dim=0).to(dev)
             free = free.select(keep)
     merged = Features.concat([objective, free, new])
     return voxel_downsample(merged, r_free=r_free, r_surface=r_surface, r_occupied=r_occupied)
