@@ -282,6 +282,10 @@ def test_predict_applies_world_motion_and_keeps_se2(mug, T_true):
     b2 = ParticleBelief(mug, poses, config=BeliefConfig(num_particles=20))
     b2.predict(dT, generator=torch.Generator().manual_seed(1))
     assert torch.equal(b.poses, b2.poses)
+    # noise=False (observed settling below the motion tolerance): the default sigma_t is not applied
+    b3 = ParticleBelief(mug, poses, config=BeliefConfig(num_particles=20))
+    b3.predict(dT, generator=torch.Generator().manual_seed(1), noise=False)
+    torch.testing.assert_close(b3.poses, dT @ poses)
 
 
 # ---------------------------------------------------------------------------------------------- priors

@@ -56,7 +56,12 @@ def _episode_config(a, task: str, seed: int):
 def _print_summary(s: dict, out: Path) -> None:
     ok = "SUCCESS" if s["success"] else "failure"
     print(f"\n{s['method']} on {s['task']} (seed {s['seed']}): {ok}")
-    print(f"  min nll         {s['min_nll']:10.1f}   (success threshold {s['nll_threshold']:g}, Table III)")
+    print(f"  min nll         {s['min_nll']:10.1f}   (success threshold {s['nll_threshold']:g}, Table III"
+          + (", already met at step 0)" if s.get("success_at_step0") else ")"))
+    if "strict_success" in s:
+        t = s["first_strict_success_step"]
+        print(f"  strict success  {'yes, at step ' + str(t) if t is not None else 'no':>10}   "
+              "(nll below the threshold and weighted rotation error < 10 deg at the same step)")
     print(f"  final nll       {s['final_nll']:10.1f}")
     print(f"  cumulative nll  {s['cumulative_nll']:10.1f}")
     print(f"  steps           {s['steps']:10d}   converged (APC < beta_t l_c): {s['converged']}")

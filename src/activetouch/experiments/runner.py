@@ -233,11 +233,14 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
     snapshots["last"] = _snapshot(belief, X, info, planner)
 
     nlls = [r["nll"] for r in rows]
+    t_strict = metrics.first_success_step(nlls, spec.nll_threshold, [r["mean_rot_err_deg"] for r in rows])
     # planning time of the steps that replanned (the others reuse the nominal plan and take ~1 ms)
     plan_times = [r["plan_s"] for r in rows if "plan_s" in r and r.get("replanned", True)]
     summary = {
         "task": cfg.task, "method": cfg.method, "seed": cfg.seed,
         "success": bool(min(nlls) < spec.nll_threshold), "nll_threshold": spec.nll_threshold,
+        "success_at_step0": bool(nlls[0] < spec.nll_threshold),
+        "strict_success": t_strict is not None, "first_strict_success_step": t_strict,
         "min_nll": min(nlls), "final_nll": nlls[-1], "cumulative_nll": float(sum(nlls)),
         "steps": len(rows) - 1, "converged": converged, "final_apc": rows[-1]["apc"],
         "initial_nll": nlls[0], "prior_apc": apc_prior, "apc_termination": terminate,
