@@ -143,11 +143,14 @@ def belief_figure(path, obj, panels: Sequence[dict], *, title: str | None = None
 
 def curves_figure(path, rows: Sequence[dict], *, nll_threshold: float | None = None, apc_threshold: float | None = None,
                   title: str | None = None):
-    """Save NLL and APC against step (RUMI Fig. 13/16) from ``steps.csv`` rows (dicts with step, nll, apc)."""
+    """Save NLL and APC against step (RUMI Fig. 13/16) from ``steps.csv`` rows (dicts with step, nll, apc), and the
+    belief's weighted rotation error when the rows have ``mean_rot_err_deg`` (the mug's NLL barely sees the yaw)."""
     steps = [int(r["step"]) for r in rows]
     nll = [float(r["nll"]) for r in rows]
     apc = [float(r["apc"]) for r in rows]
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
+    rot = [float(r["mean_rot_err_deg"]) for r in rows] if rows and "mean_rot_err_deg" in rows[0] else None
+    fig, axes = plt.subplots(1, 3 if rot else 2, figsize=(16 if rot else 11, 4))
+    a1, a2 = axes[0], axes[1]
     a1.plot(steps, nll, "-o", ms=3)
     if nll_threshold is not None:
         a1.axhline(nll_threshold, ls="--", c="g", label=f"success threshold {nll_threshold:g}")
@@ -161,6 +164,15 @@ def curves_figure(path, rows: Sequence[dict], *, nll_threshold: float | None = N
         a2.legend()
     a2.set_xlabel("step")
     a2.set_ylabel("APC (Eq. 33, m)")
+    if rot:
+        from .metrics import ROT_SUCCESS_DEG
+
+        a3 = axes[2]
+        a3.plot(steps, rot, "-o", ms=3, c="tab:purple")
+        a3.axhline(ROT_SUCCESS_DEG, ls="--", c="g", label=f"strict success {ROT_SUCCESS_DEG:g} deg")
+        a3.legend()
+        a3.set_xlabel("step")
+        a3.set_ylabel("weighted rotation error (deg)")
     if title:
         fig.suptitle(title)
     fig.tight_layout()
