@@ -14,7 +14,7 @@ import torch
 from ..geometry import check_poses, transform_points
 
 __all__ = ["nll", "apc", "adi", "translation_error", "rotation_error", "active_share", "wilson_interval",
-           "first_success_step", "ROT_SUCCESS_DEG"]
+           "first_success_step", "success_fields", "ROT_SUCCESS_DEG"]
 
 #: Stricter success used beside Table III's: the belief's weighted rotation error is below this (degrees).
 ROT_SUCCESS_DEG = 10.0
@@ -184,3 +184,12 @@ def first_success_step(nll, nll_threshold: float, mean_rot_err_deg=None,
         if v < nll_threshold and (rot is None or rot[t] < rot_threshold_deg):
             return t
     return None
+
+
+def success_fields(nll, mean_rot_err_deg, nll_threshold: float) -> dict:
+    """The success entries of ``summary.json`` beyond Table III's, from per-step NLL and weighted rotation error:
+    ``success_at_step0``, ``strict_success`` and ``first_strict_success_step`` (:func:`first_success_step`)."""
+    nll = [float(v) for v in nll]
+    t = first_success_step(nll, nll_threshold, mean_rot_err_deg)
+    return {"success_at_step0": bool(nll[0] < nll_threshold), "strict_success": t is not None,
+            "first_strict_success_step": t}

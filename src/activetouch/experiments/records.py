@@ -100,7 +100,7 @@ def is_finished(episode_dir: str | os.PathLike) -> bool:
 def load_summaries(dirs: Iterable[str | os.PathLike]) -> list[dict[str, Any]]:
     """Summaries of the finished episodes in ``dirs``; fields added to ``summary.json`` later (the step-0 and
     strict successes) are recomputed from ``steps.csv`` for episodes run before them."""
-    from .metrics import first_success_step
+    from .metrics import success_fields
 
     out = []
     for d in dirs:
@@ -110,9 +110,7 @@ def load_summaries(dirs: Iterable[str | os.PathLike]) -> list[dict[str, Any]]:
         steps = Path(d) / "steps.csv"
         if "strict_success" not in s and "nll_threshold" in s and steps.exists():
             rows = read_steps(steps)
-            nll = [float(r["nll"]) for r in rows]
-            t = first_success_step(nll, s["nll_threshold"], [float(r["mean_rot_err_deg"]) for r in rows])
-            s.update(success_at_step0=nll[0] < s["nll_threshold"], strict_success=t is not None,
-                     first_strict_success_step=t)
+            s.update(success_fields([r["nll"] for r in rows], [r["mean_rot_err_deg"] for r in rows],
+                                    s["nll_threshold"]))
         out.append(s)
     return out

@@ -60,9 +60,9 @@ def aggregate(summaries: Iterable[dict[str, Any]]) -> dict[tuple[str, str], dict
                                                    if s.get("first_strict_success_step") is not None]),
                     "median_cumulative_nll": float(np.median([s["cumulative_nll"] for s in ss])),
                     "median_initial_nll": float(np.median([s.get("initial_nll", np.nan) for s in ss])),
-                    "median_final_rot_err_deg": float(np.median(rot)) if rot else float("nan"),
+                    "median_final_rot_err_deg": _median(rot),
                     "rot_successes": rot_ok, "rot_runs": len(rot),
-                    "median_plan_s": float(np.median(plan)) if plan else float("nan")}
+                    "median_plan_s": _median(plan)}
     return out
 
 
@@ -72,8 +72,7 @@ def markdown_table(summaries: Iterable[dict[str, Any]]) -> str:
     Columns: successes by Table III (min NLL below the threshold) with their Wilson 95 % interval and how many of
     them the vision-only belief already had at step 0; strict successes (NLL below the threshold and weighted
     rotation error below ``ROT_SUCCESS_DEG`` at the same step) and the median step they first held; median
-    cumulative NLL; the belief's NLL at step 0
-    and weighted rotation error at the end; median planning time.
+    cumulative NLL; the belief's NLL at step 0 and weighted rotation error at the end; median planning time.
     """
     agg = aggregate(summaries)
     lines = ["| task | method | successes (Tab. III) | 95 % CI | paper (Tab. V) | of them at step 0 "

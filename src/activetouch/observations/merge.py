@@ -64,7 +64,7 @@ def merge_obs(
                 raise ValueError(f"poses must have shape (P, 4, 4), got {tuple(poses.shape)}")
             keep = torch.ones(len(free), dtype=torch.bool, device=dev)
             # only points within the bounding radius of some particle origin can be covered (exact pruning)
-            near = near_any(free.positions, poses[:, :3, 3].detach().to(free.positions), obj.bounding_radius)
+            near = near_any(free.positions, poses[:, :3, 3].detach(), obj.bounding_radius)
             idx = torch.nonzero(near).squeeze(1)
             with torch.no_grad():
                 for s in range(0, len(idx), chunk):
