@@ -186,3 +186,35 @@ def test_sensor_model_sums_to_one_and_shape():
         sm.probs(torch.tensor([float("nan")]))
     with pytest.raises(ValueError):
         SemanticSensorModel(alpha=0.0)
+
+
+def test_merge_obs_keeps_free_evidence_against_particles_under_settling_motions(box_obj):
+    # MuJoCo settles a resting object by 1-2e-6 m per step. Free points inside some particles are the evidence
+    # against those particles: a motion that covers none of them must keep every one (Algorithm 6 line 3 is
+    # about points the move may have covered).
+    gen = torch.Generator().manual_seed(0)
+    free_pts = torch.rand(400, 3, generator=gen) * torch.tensor([0.2, 0.2, 0.1]) - torch.tensor([0.1, 0.1, 0.0])
+    prev = voxel_downsample(Features(free_pts, [F] * len(free_pts)))
+    xy = torch.rand(30, 2, generator=gen) * 0.1 - 0.05
+    poses = tf.pose_from_xyz_yaw(torch.cat([xy, torch.zeros(30, 1)], 1), torch.rand(30, generator=gen) * 6.28)
+    v, _ = box_obj.sdf_world(poses, prev.positions)
+    assert int((v < 0).any(0).sum()) > 20  # many free points contradict some particle
+    X = prev
+    for step in range(5):
+        settle = tf.pose_from_xyz_yaw(torch.tensor([1.5e-6, -1e-6, 0.0]), torch.tensor(2e-6))
+        poses = settle @ poses
+        X = merge_obs(X, Features.empty(), poses, box_obj, settle)
+        assert len(X.free) == len(prev.free), f"step {step}: free points lost to a settling motion"
+
+
+def test_merge_obs_drops_only_what_the_move_covered(box_obj):
+    # a particle that already covered the point before the move and still covers it: the point is evidence
+    # against that particle and stays; the literal "free for every particle" rule would drop it
+    dT_w = tf.pose_from_xyz_yaw(torch.tensor([0.005, 0.0, 0.0]), torch.tensor(0.0))
+    covering = tf.pose_from_xyz_yaw(torch.tensor([0.1, 0.0, 0.0]), torch.tensor(0.0))
+    prev = Features(torch.tensor([[0.1, 0.0, 0.04], [0.118, 0.0, 0.04]]), [F, F])
+    out = merge_obs(prev, Features.empty(), covering.unsqueeze(0), box_obj, dT_w)
+    # the box spans x in [0.075, 0.115] before and [0.08, 0.12] after: (0.1, 0, 0.04) was inside both times: kept;
+    # (0.118, 0, 0.04) entered the box: dropped
+    assert len(out.free) == 1
+    assert torch.allclose(out.free.positions[0], torch.tensor([0.1, 0.0, 0.04]))
