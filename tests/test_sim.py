@@ -84,6 +84,24 @@ def test_push_moves_object_and_tactile_points_on_surface(env):
     assert moved > 0.03, f"push moved the mug only {moved:.3f} m"
 
 
+def test_contacts_made_during_the_mini_steps_are_sensed(env):
+    # brushing the mug sideways pushes it away within one action: without reading the pads after each mini step
+    # the last contact step reported no surface point at all (touch read once, after settling)
+    env.reset()
+    _drive_to(env, (0.45, 0.22))
+    contact_steps, points = 0, 0
+    for _ in range(5):
+        obs, _, _, _, info = env.step(np.array([0.0, -1.0, 0.0]))
+        surf = obs.features.surface.positions
+        if obs.in_contact:
+            contact_steps += 1
+            assert len(surf) > 0, "a step in contact reported no surface point"
+        if len(surf):  # carried with the object to its pose at the end of the step
+            points += len(surf)
+            assert _sdf_world(env, surf, info["true_pose"]).abs().max().item() < 0.003 + 1e-4
+    assert contact_steps >= 2 and points > 100
+
+
 def test_dT_is_the_observed_object_motion(env):
     env.reset()
     _drive_to(env, (0.33, 0.0))

@@ -92,6 +92,11 @@ class RummageEnv:
 
     physics_substeps = 8  # physics steps (2 ms) per mini step
     settle_steps = 40  # physics steps after the last mini step
+    # Read the pads after every mini step in contact, not only once after settling: a contact made and lost
+    # within one action (the object pushed away, the gripper sliding past a corner) otherwise leaves no surface
+    # point. Points sensed at mini step k are object-fixed: they are carried to the object's pose at the end of
+    # the step (x -> T_end T_k^-1 x), as Algorithm 6 carries object features.
+    touch_every_mini_step = True
 
     def __init__(self, spec: TaskSpec, seed: int = 0, start_noise: float = 0.0):
         from activetouch import objects
@@ -264,6 +269,7 @@ class RummageEnv:
         n = max(1, int(math.ceil(max(np.linalg.norm(dpos) / s.mini_step, abs(dyaw) / s.mini_step_yaw))))
         q = d.qpos[self._qadr].copy()
         contact = False
+        touched_obj = []  # object-frame surface points sensed during the mini steps
         for k in range(1, n + 1):
             a = k / n
             p = ee0[:3] + a * dpos
@@ -272,7 +278,14 @@ class RummageEnv:
             d.ctrl[:] = q
             for _ in range(self.physics_substeps):
                 mujoco.mj_step(m, d)
-            contact = contact or self._touching()
+            touching = self._touching()
+            contact = contact or touching
+            if touching and self.touch_every_mini_step and k < n:
+                T_k = self.true_pose()
+                pts = self.tactile.sense(self.ee_pose(), T_k, surface_only=True).surface
+                if len(pts):
+                    inv = np.linalg.inv(T_k)
+                    touched_obj.append(pts @ inv[:3, :3].T + inv[:3, 3])
         for _ in range(self.settle_steps):
             mujoco.mj_step(m, d)
         contact = contact or self._touching()
@@ -281,6 +294,7 @@ class RummageEnv:
         T_after = self.true_pose()
         surface, free = [], []
         tac = self.tactile.sense(self.ee_pose(), T_after)
+        surface.extend(pts @ T_after[:3, :3].T + T_after[:3, 3] for pts in touched_obj)
         surface.append(tac.surface)
         free.append(tac.free)
         if s.camera_every_step:

@@ -70,14 +70,17 @@ class TactileSensor:
             out[near] = v.detach().cpu().double().numpy()
         return out
 
-    def sense(self, ee_pose: np.ndarray, obj_pose: np.ndarray) -> TactileReading:
-        """Tactile reading for ee pose ``(4, 4)`` and true object pose ``(4, 4)`` (object -> world)."""
+    def sense(self, ee_pose: np.ndarray, obj_pose: np.ndarray, surface_only: bool = False) -> TactileReading:
+        """Tactile reading for ee pose ``(4, 4)`` and true object pose ``(4, 4)`` (object -> world);
+        ``surface_only`` skips the free points (empty ``free``)."""
         inv = np.linalg.inv(obj_pose)
         A = inv @ ee_pose  # ee frame -> object frame
         pad_obj = self.pad_pts @ A[:3, :3].T + A[:3, 3]
         v = self._sdf_obj(pad_obj)
         touch = np.abs(v) < self.band
         surface = self.pad_pts[touch] @ ee_pose[:3, :3].T + ee_pose[:3, 3]
+        if surface_only:
+            return TactileReading(surface=surface, free=np.zeros((0, 3)))
         h_obj = self.h_pts @ A[:3, :3].T + A[:3, 3]
         vf = self._sdf_obj(h_obj)
         free = self.h_pts[vf > self.band] @ ee_pose[:3, :3].T + ee_pose[:3, 3]
