@@ -17,19 +17,23 @@ import trimesh
 
 from activetouch import objects
 from activetouch.belief import (
+    MIN_PARTICLES,
     BeliefConfig,
     ParticleBelief,
     boltzmann_weights,
+    chsel_min_batch,
     discrepancy,
+    discrepancy_and_objective,
     gaussian_yaw_prior,
     mug_prior,
+    optimisation_objective,
     point_costs,
     systematic_resample,
 )
 from activetouch.belief.optimise import local_poses
 from activetouch.experiments import metrics
 from activetouch.geometry import invert, pose_from_xyz_yaw, transform_points, yaw_of
-from activetouch.observations import Features, voxel_downsample
+from activetouch.observations import Features, merge_obs, voxel_downsample
 
 CAMERA = np.array([0.40, 0.0, 0.06])
 TRUE_XYZ = (0.80, 0.0, 0.0)
@@ -448,3 +452,172 @@ def test_resting_face_prior_covers_the_six_faces_on_the_table():
     assert len(faces) == 6  # every face drawn
     assert torch.allclose(P[:, :3, :3].det(), torch.ones(600), atol=1e-5)
     assert abs(float(P[:, 0, 3].mean()) - 0.4) < 0.01 and 0.04 < float(P[:, 1, 3].std()) < 0.06
+
+
+# ---------------------------------------------------------------------------------------------- weighing fast path
+def test_fast_weighing_equals_the_gradient_path(mug, T_true, camera_X, handle_X):
+    """weigh() runs under no_grad and takes the values-only SDF lookup; its discrepancies and weights equal those
+    of the differentiable path (poses that require grad -> KnownObject.sdf_world) within float rounding."""
+    X = Features.concat([camera_X, handle_X])
+    g = torch.Generator().manual_seed(0)
+    poses = mug_prior(T_true[:3, 3] + torch.tensor([0.003, -0.002, 0.0]), 100, g)
+    poses[:, :2, 3] += torch.randn(100, 2, generator=g) * 0.003
+    b = ParticleBelief(mug, poses)
+    w_fast = b.weigh(X).clone()
+    l_fast = b.last_discrepancy.clone()
+    l_grad = discrepancy(mug, X, poses.clone().requires_grad_(True)).detach()
+    assert 1.0 < float(l_grad.min()) < float(l_grad.max())  # a real spread of weights
+    torch.testing.assert_close(l_fast, l_grad, rtol=1e-5, atol=2e-4)
+    torch.testing.assert_close(w_fast, boltzmann_weights(l_grad, 2.0), rtol=0, atol=1e-5)
+    assert torch.equal(b.weigh(X), w_fast)  # deterministic
+
+
+# ---------------------------------------------------------------------------------------------- Eq. 7-9
+@pytest.mark.parametrize("exact", [True, False])
+def test_optimisation_objective_gradient_is_eq_7_to_9(mug, T_true, exact):
+    """The autograd gradient of the squared-hinge objective J = sum k r^2 / 2 is the paper's Eq. 7-9 written out by
+    hand: per point e = C max(0, alpha - sdf) (-grad sdf) (free), C max(0, alpha + sdf) grad sdf (occupied),
+    (sdf - 0) grad sdf (surface), chained through x_obj = R^T (x - t): dJ/dR = sum (x - t) e^T, dJ/dt = -R sum e."""
+    C, tol = 10.0, 0.004
+    alpha = -tol  # chsel's sign convention (module docstring of activetouch.belief.discrepancy)
+    g = torch.Generator().manual_seed(8)
+    surf = mug.sample_surface(40, seed=9)
+    _, n = mug.sdf(surf)
+    surf = surf + n * ((torch.rand(40, 1, generator=g) - 0.5) * 0.01)  # +-5 mm off the surface, both sides
+    probes = torch.tensor([[-0.044, 0.0, 0.03], [0.0, -0.0445, 0.028], [-0.090, 0.0, 0.03],  # free: in, in, out
+                           [-0.044, 0.0, 0.03], [-0.090, 0.0, 0.03], [0.0, -0.080, 0.02]])  # occupied: in, out, out
+    pts = torch.cat([surf, probes]).double()
+    sem = torch.tensor([0] * 40 + [1, 1, 1, 2, 2, 2])
+    X = Features(transform_points(T_true.double(), pts).float(), sem)
+    off = pose_from_xyz_yaw(torch.tensor([0.003, -0.002, 0.0]), torch.tensor(0.05))
+    poses = torch.stack([T_true, off @ T_true]).double()
+    T = poses.clone().requires_grad_(True)
+    J = optimisation_objective(mug, X, T, free_scale=C, violation_tolerance=tol, exact=exact)
+    J.sum().backward()
+    # by hand
+    x = X.positions.double()
+    R, t = poses[:, :3, :3], poses[:, :3, 3]
+    x_obj = (x[None] - t[:, None]) @ R  # R^T (x - t), (P, N, 3)
+    v, gr = mug.sdf(x_obj) if exact else mug.cached_sdf(x_obj)
+    free, occ, surface = (sem == 1), (sem == 2), (sem == 0)
+    r_f = torch.clamp(alpha - v, min=0)
+    r_o = torch.clamp(alpha + v, min=0)
+    e = torch.where(free[None, :, None], C * r_f[..., None] * -gr,
+                    torch.where(occ[None, :, None], C * r_o[..., None] * gr, (v - 0.0)[..., None] * gr))  # Eq. 7-9
+    assert float(r_f[:, free].max()) > 0.002 and float(r_o[:, occ].max()) > 0.01  # violations of both kinds
+    assert float((r_f[:, free] == 0).sum()) > 0 and float((r_o[:, occ] == 0).sum()) > 0  # and non-violations
+    dR = (x[None] - t[:, None]).transpose(1, 2) @ e  # sum_n (x_n - t) e_n^T
+    dt = -(R @ e.sum(1).unsqueeze(-1)).squeeze(-1)
+    assert float(dt.abs().max()) > 1e-3
+    torch.testing.assert_close(T.grad[:, :3, :3], dR, rtol=1e-4, atol=1e-7)
+    torch.testing.assert_close(T.grad[:, :3, 3], dt, rtol=1e-4, atol=1e-7)
+    assert float(T.grad[:, 3].abs().max()) == 0.0
+    # J is the squared hinge of the same residuals whose linear sum is the discrepancy of Eq. 3
+    J_hand = (0.5 * C * r_f ** 2 * free + 0.5 * C * r_o ** 2 * occ + 0.5 * v ** 2 * surface).sum(1)
+    torch.testing.assert_close(J.detach(), J_hand, rtol=1e-5, atol=1e-9)
+    c, J2 = discrepancy_and_objective(mug, X, poses, free_scale=C, violation_tolerance=tol, exact=exact)
+    torch.testing.assert_close(c, discrepancy(mug, X, poses, free_scale=C, violation_tolerance=tol, exact=exact))
+    torch.testing.assert_close(J2, J.detach())
+
+
+def test_resample_and_obj_move_descend_the_eq_7_to_9_objective(mug, T_true, camera_X):
+    """Algorithms 4 and 5 get (C^, J) from the belief: Adam descends J, each particle keeps its lowest C^."""
+    b = ParticleBelief(mug, T_true[None].repeat(4, 1, 1), config=BeliefConfig(num_particles=4))
+    c, J = b._cost_fn(camera_X)(b.poses)
+    torch.testing.assert_close(c, b.discrepancy(camera_X))
+    torch.testing.assert_close(J, optimisation_objective(mug, camera_X, b.poses))
+    # a 5 mm offset particle is pulled back; the returned cost is its C^ (never worse than at the start)
+    from activetouch.belief.optimise import optimise_poses
+
+    start = pose_from_xyz_yaw(torch.tensor(TRUE_XYZ) + torch.tensor([0.005, 0.0, 0.0]), torch.tensor(TRUE_YAW))[None]
+    best, cost = optimise_poses(b._cost_fn(camera_X), start, 10, 0.003, 0.03, True)
+    assert float(metrics.translation_error(best[0], T_true)) < 0.003
+    torch.testing.assert_close(cost, b.discrepancy(camera_X, best))
+    assert float(cost[0]) < float(b.discrepancy(camera_X, start)[0])
+    # the pre-Eq.-7-9 behaviour on request: descend C^ itself
+    lin = ParticleBelief(mug, b.poses, config=BeliefConfig(num_particles=4, opt_objective="linear_hinge"))
+    torch.testing.assert_close(lin._cost_fn(camera_X)(b.poses), b.discrepancy(camera_X))
+    with pytest.raises(ValueError, match="opt_objective"):
+        BeliefConfig(opt_objective="huber")
+
+
+# ---------------------------------------------------------------------------------------------- input checks
+def test_chsel_minimum_particle_count_is_checked_before_any_work(mug, T_true, camera_X):
+    assert MIN_PARTICLES == chsel_min_batch(BeliefConfig().chsel_iterations) == 10
+    assert chsel_min_batch(1) == 3
+    g = torch.Generator().manual_seed(0)
+    for P in (1, 2, MIN_PARTICLES - 1):
+        prior = mug_prior(T_true[:3, 3], P, g)
+        cfg = BeliefConfig(num_particles=P)
+        with pytest.raises(ValueError, match=rf"CHSEL .* needs at least 10 particles, got {P}"):
+            ParticleBelief.from_prior(mug, prior, camera_X, cfg, use_chsel=True, generator=g)
+        # without CHSEL any P works, and the belief never holds NaN
+        b = ParticleBelief.from_prior(mug, prior, camera_X, cfg, use_chsel=False, generator=g)
+        b.update(camera_X, g)
+        assert bool(torch.isfinite(b.poses).all()) and bool(torch.isfinite(b.weights).all())
+    with pytest.raises(ValueError, match="needs at least 3 particles, got 2"):
+        ParticleBelief.from_prior(mug, mug_prior(T_true[:3, 3], 2, g), camera_X, BeliefConfig(num_particles=2),
+                                  use_chsel=True, chsel_iterations=1)
+    with pytest.raises(ValueError, match="chsel_batch must be None or an int >= 10"):
+        BeliefConfig(chsel_batch=5)
+    with pytest.raises(ValueError, match="got 9"):  # chsel_register itself checks too
+        from activetouch.belief.chsel_init import chsel_register
+
+        chsel_register(mug, mug_prior(T_true[:3, 3], 9, g), camera_X, BeliefConfig(num_particles=9))
+
+
+@pytest.mark.slow
+def test_chsel_at_the_minimum_particle_count_gives_finite_poses(mug, T_true, camera_X):
+    """With MIN_PARTICLES particles CHSEL re-initialises between rounds from 2 elites (fewer: NaN poses)."""
+    g = torch.Generator().manual_seed(0)
+    prior = mug_prior(T_true[:3, 3] + torch.tensor([0.004, -0.003, 0.0]), MIN_PARTICLES, g)
+    cfg = BeliefConfig(num_particles=MIN_PARTICLES, chsel_iterations=2, chsel_qd_iterations=5, chsel_max_points=100)
+    b = ParticleBelief.from_prior(mug, prior, camera_X, cfg, use_chsel=True, generator=torch.Generator().manual_seed(1))
+    assert bool(torch.isfinite(b.poses).all()) and b.num_particles == MIN_PARTICLES
+
+
+def test_boltzmann_weights_reject_bad_lambda():
+    l = torch.tensor([1.0, 2.0, 4.0])
+    for lam in (float("nan"), -1.0, -1e-9, float("inf"), "two", None):
+        with pytest.raises(ValueError, match="lam must be a finite number >= 0"):
+            boltzmann_weights(l, lam)
+    # lam = 0: uniform over the particles with a finite discrepancy
+    torch.testing.assert_close(boltzmann_weights(torch.tensor([1.0, 5.0, float("inf")]), 0.0),
+                               torch.tensor([0.5, 0.5, 0.0]))
+    torch.testing.assert_close(boltzmann_weights(l, torch.tensor(2.0)), boltzmann_weights(l, 2.0))
+
+
+def test_non_rigid_poses_are_rejected_where_poses_enter_the_belief(mug, T_true, camera_X):
+    bad = 2 * torch.eye(4)
+    with pytest.raises(ValueError, match=r"^poses must be rigid transforms \(pose 0 of 3\).*det R = 8"):
+        ParticleBelief(mug, bad.expand(3, 4, 4))
+    with pytest.raises(ValueError, match="prior_poses must be rigid"):
+        ParticleBelief.from_prior(mug, bad.expand(3, 4, 4), camera_X, BeliefConfig(num_particles=3), use_chsel=False)
+    reflected = T_true.clone()
+    reflected[:3, 0] *= -1.0
+    with pytest.raises(ValueError, match="det R = -1"):
+        ParticleBelief(mug, reflected[None])
+    b = ParticleBelief(mug, T_true[None].repeat(3, 1, 1), config=BeliefConfig(num_particles=3))
+    with pytest.raises(ValueError, match="dT must be rigid"):
+        b.predict(bad)
+    with pytest.raises(ValueError, match="dT_r must be rigid"):
+        b.obj_move(camera_X, camera_X, bad)
+    with pytest.raises(ValueError, match="dT_w must be rigid"):
+        merge_obs(camera_X, camera_X, b.poses, mug, bad, r_free=0.010, r_surface=0.002)
+    with pytest.raises(ValueError, match="poses must be rigid"):
+        discrepancy(mug, camera_X, bad[None])
+    # float32 poses composed over many steps stay rigid within the tolerance
+    dT = pose_from_xyz_yaw(torch.tensor([0.001, 0.0005, 0.0]), torch.tensor(0.013))
+    for _ in range(200):
+        b.predict(dT, noise=False)
+    assert bool(torch.isfinite(b.poses).all())
+
+
+def test_from_prior_rejects_a_prior_of_the_wrong_size(mug, T_true, camera_X):
+    prior = mug_prior(T_true[:3, 3], 20, torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match="prior_poses holds 20 poses but config.num_particles is 50"):
+        ParticleBelief.from_prior(mug, prior, camera_X, BeliefConfig(num_particles=50), use_chsel=False)
+    with pytest.raises(ValueError, match="holds 20 poses but config.num_particles is 100"):  # the default P
+        ParticleBelief.from_prior(mug, prior, camera_X, use_chsel=False)
+    b = ParticleBelief.from_prior(mug, prior, camera_X, use_chsel=False, num_particles=20)
+    assert b.num_particles == 20

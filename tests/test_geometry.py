@@ -141,3 +141,33 @@ def test_voxel_grid_shape_points_and_linear_interpolation():
         grid.interpolate(torch.zeros(3, 3, 3), x)
     with pytest.raises(ValueError):
         VoxelGrid([0, 0, 0], [0, 1, 1], 0.1)
+
+
+def test_check_poses_rejects_non_rigid_transforms():
+    good = _random_poses(5, seed=3).float()
+    assert tf.check_poses(good) is good
+    # float32 round-off (and drift of composed poses) is well inside the 1e-3 tolerance
+    noisy = good.clone()
+    noisy[:, :3, :3] += 1e-5 * torch.randn(5, 3, 3, generator=torch.Generator().manual_seed(0))
+    tf.check_poses(noisy)
+    scaled = good.clone()
+    scaled[2, :3, :3] *= 2.0
+    reflected = good.clone()
+    reflected[1, :3, 0] *= -1.0  # orthonormal, det -1
+    sheared = good.clone()
+    sheared[4, 0, 1] += 0.05
+    bottom = good.clone()
+    bottom[0, 3, 0] = 0.5
+    for bad, i in ((scaled, 2), (reflected, 1), (sheared, 4), (bottom, 0)):
+        with pytest.raises(ValueError, match=rf"rigid transforms \(pose {i} of 5\)"):
+            tf.check_poses(bad, "poses")
+    with pytest.raises(ValueError, match="dT must be rigid.*det R = 8"):
+        tf.check_poses(2 * torch.eye(4), "dT")
+    # general 4 x 4 matrices on request; NaN is reported as NaN first
+    tf.check_poses(2 * torch.eye(4), rigid=False)
+    with pytest.raises(ValueError, match="NaN"):
+        tf.check_poses(torch.full((4, 4), float("nan")))
+    # message is one line
+    with pytest.raises(ValueError) as e:
+        tf.check_poses(2 * torch.eye(4))
+    assert "\n" not in str(e.value)

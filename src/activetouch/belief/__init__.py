@@ -1,7 +1,8 @@
 """RUMI pose particle belief ``p(T | X)``: CHSEL discrepancy, weighing, resampling, prediction, ObjMove.
 
 * :mod:`.config` - ``BeliefConfig`` (Table IV defaults).
-* :mod:`.discrepancy` - ``C^(X, T)`` (Eq. 3-9), batched over particles, differentiable.
+* :mod:`.discrepancy` - ``C^(X, T)`` (Eq. 3-6, weighing) and the squared-hinge objective whose gradient is
+  Eq. 7-9 (Algorithms 4 and 5), batched over particles, differentiable.
 * :mod:`.particle_filter` - ``ParticleBelief`` (Algorithms 1, 2, 4; predict; from_prior).
 * :mod:`.resample` - systematic importance resampling, PerturbTransform application (Alg. 3, 4).
 * :mod:`.optimise` - N_o Adam steps on the discrepancy over local SE(2)/SE(3) pose parameters.
@@ -10,14 +11,18 @@
 * :mod:`.chsel_init` - CHSEL quality-diversity initialisation (Algorithm 1 line 2).
 """
 from . import priors
-from .config import BeliefConfig
-from .discrepancy import discrepancy, point_costs
+from .config import MIN_PARTICLES, BeliefConfig, chsel_min_batch
+from .discrepancy import discrepancy, discrepancy_and_objective, optimisation_objective, point_costs
 from .particle_filter import ParticleBelief, boltzmann_weights
 from .priors import gaussian_yaw_prior, mug_prior, resting_face_prior
 from .resample import systematic_resample
 
 __all__ = [
     "BeliefConfig",
+    "MIN_PARTICLES",
+    "chsel_min_batch",
+    "discrepancy_and_objective",
+    "optimisation_objective",
     "ParticleBelief",
     "boltzmann_weights",
     "discrepancy",

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from ..geometry import check_poses, invert, pose_from_xyz_yaw, yaw_of
-from .config import BeliefConfig
+from .config import BeliefConfig, chsel_min_batch
 from .discrepancy import FREE, OCCUPIED, SURFACE
 
 __all__ = ["chsel_register", "KnownObjectSDF"]
@@ -98,19 +98,24 @@ def chsel_register(obj, prior_poses: torch.Tensor, features, config: BeliefConfi
     ``batch`` results repeated in turn (SIMPLIFICATION: fewer distinct initial particles, for speed; the
     first Resample perturbs them apart).
     """
-    import chsel
-
     prior = check_poses(prior_poses, "prior_poses")
     if prior.ndim != 3:
         raise ValueError(f"prior_poses must have shape (P, 4, 4), got {tuple(prior.shape)}")
     P = prior.shape[0]
+    B = P if config.chsel_batch is None else min(int(config.chsel_batch), P)
+    need = chsel_min_batch(config.chsel_iterations)
+    if B < need:
+        raise ValueError(f"CHSEL initialisation with {config.chsel_iterations} round(s) needs at least {need} "
+                         f"particles, got {B} (chsel 0.2.1 makes NaN poses or crashes below that); use more "
+                         f"particles or skip CHSEL (use_chsel=False, --no-chsel)")
+    import chsel  # after the cheap checks: importing chsel (pyribs, cma) takes seconds
+
     dtype, device = prior.dtype, prior.device
     features = _registration_subset(obj, features, prior, int(config.chsel_max_points), generator)
     x = features.positions.to(device=device, dtype=dtype)
     s = features.semantics.to(device=device, dtype=torch.long)
     if int((s == SURFACE).sum()) == 0:
         raise ValueError("CHSEL needs at least one SURFACE feature to register against")
-    B = P if config.chsel_batch is None else min(int(config.chsel_batch), P)
     init = prior[:B]
 
     kwargs = {}

@@ -4,7 +4,30 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
-__all__ = ["BeliefConfig"]
+__all__ = ["BeliefConfig", "MIN_PARTICLES", "chsel_min_batch"]
+
+
+def chsel_min_batch(chsel_iterations: int) -> int:
+    """Smallest number of particles CHSEL (chsel 0.2.1, Algorithm 1 line 2) registers without failing.
+
+    Measured on the mug (tests/test_belief.py scenario) and read from chsel / pyribs 0.2.1 / 0.x:
+
+    * between registration rounds chsel re-initialises around the ``int(0.2 B)`` best transforms and samples
+      with their standard deviation (``chsel.initialization.reinitialize_transform_around_elites``); fewer
+      than 2 elites give a NaN std and NaN poses (B = 2..9 with the default 5 rounds: "points_obj contains
+      NaN or inf"), so more than one round needs ``B >= 10``;
+    * its quality-diversity step runs pyribs' ``GradientArborescenceEmitter`` with ``batch_size = B - 1``,
+      whose CMA-ES keeps ``batch_size // 2`` parents: B = 1 raises ``IndexError``; B = 2 keeps no parent
+      (NaN strategy parameters, pyribs warns ``mueff = 0 / 0``; its poses happened to stay finite in our
+      runs), so a single round needs ``B >= 3``.
+    """
+    return 10 if int(chsel_iterations) > 1 else 3
+
+
+#: Smallest particle count (P) the default belief set-up (CHSEL initialisation with the default 5 rounds)
+#: accepts; :meth:`ParticleBelief.from_prior` raises below it when CHSEL is used. Without CHSEL
+#: (``use_chsel=False``, the CLI's ``--no-chsel``) any P >= 1 works.
+MIN_PARTICLES = chsel_min_batch(5)
 
 
 @dataclass(frozen=True)
@@ -28,6 +51,17 @@ class BeliefConfig:
     * ``resample_percentile``: None uses the max discrepancy (Alg. 1 line 16); a value in (0, 100] uses that
       percentile instead ("for better robustness against outlier pose samples", section IV-D).
     * ``exact_sdf``: evaluate the exact mesh SDF instead of the voxel cache (slow; for checks).
+    * ``opt_objective``: what the N_o Adam steps of Algorithms 4 and 5 descend (each particle keeps its iterate
+      with the lowest discrepancy C^ either way). ``"squared_hinge"`` (default, the paper): the objective
+      ``sum k r^2 / 2`` whose gradient is Eq. 7-9, residual times SDF gradient. ``"linear_hinge"``: the autograd
+      gradient of C^ itself (Eq. 3-6), every violation pulling equally hard - the behaviour before Eq. 7-9 was
+      followed. Measured on the side-camera mug of tests/test_belief.py (100 particles 6 mm / 0.1 rad off,
+      one Resample, 3 seeds): median C^ after the 10 steps 1.3-1.7 with ``"squared_hinge"`` against 1.0-1.3
+      with ``"linear_hinge"`` (median translation error 1.5-1.9 vs 1.1-1.3 mm); Adam's normalised steps shrink
+      with the residuals of the squared hinge, not with those of the linear one.
+    * ``num_particles`` may be any P >= 1, but CHSEL initialisation needs at least
+      :func:`chsel_min_batch` particles (:data:`MIN_PARTICLES` = 10 with the default 5 rounds):
+      ``ParticleBelief.from_prior(use_chsel=True)`` raises below it.
     * ``chsel_*``: CHSEL (Alg. 1 line 2) registration settings. ``chsel_batch=None`` registers all P prior
       particles (the paper); ``chsel_qd_iterations`` is chsel's n_o (its default 100). ``chsel_max_points``:
       CHSEL registers against at most this many points of each semantics class (a seeded random subset, free
@@ -51,6 +85,7 @@ class BeliefConfig:
     opt_lr_t: float = 0.003
     opt_lr_R: float = 0.03
     exact_sdf: bool = False
+    opt_objective: str = "squared_hinge"
     active_weight: float = 1e-4
     chsel_iterations: int = 5
     chsel_batch: int | None = None
@@ -77,8 +112,14 @@ class BeliefConfig:
         if self.resample_percentile is not None and not (0.0 < float(self.resample_percentile) <= 100.0):
             raise ValueError(f"BeliefConfig.resample_percentile must be in (0, 100] or None, "
                              f"got {self.resample_percentile!r}")
-        if self.chsel_batch is not None and (not isinstance(self.chsel_batch, int) or self.chsel_batch < 1):
-            raise ValueError(f"BeliefConfig.chsel_batch must be a positive int or None, got {self.chsel_batch!r}")
+        if self.opt_objective not in ("squared_hinge", "linear_hinge"):
+            raise ValueError(f"BeliefConfig.opt_objective must be 'squared_hinge' (Eq. 7-9) or 'linear_hinge', "
+                             f"got {self.opt_objective!r}")
+        if self.chsel_batch is not None:
+            need = chsel_min_batch(self.chsel_iterations)
+            if not isinstance(self.chsel_batch, int) or isinstance(self.chsel_batch, bool) or self.chsel_batch < need:
+                raise ValueError(f"BeliefConfig.chsel_batch must be None or an int >= {need} (CHSEL with "
+                                 f"{self.chsel_iterations} round(s) fails below that), got {self.chsel_batch!r}")
 
     @classmethod
     def field_names(cls) -> list[str]:

@@ -13,7 +13,9 @@ Here poses map object -> world (``x_world = T x_obj``), so:
 We optimise the hypothesis new pose ``T' = dT_w T_i`` with the same local parametrisation as Resample
 (rotation about the particle's origin, world-frame translation; SE(2): x, y, yaw only), initialised at the
 sticking-contact prior ``dT_w = dT_r`` (``dT_r``: world-frame end-effector motion in contact), for N_o Adam
-steps on ``C^(X', T')``, and read ``dT_w = T' T_i^-1`` back.
+steps that descend the Eq. 7-9 gradient (the squared-hinge
+:func:`~activetouch.belief.discrepancy.optimisation_objective` on X') keeping the iterate with the lowest
+``C^(X', T')``, and read ``dT_w = T' T_i^-1`` back.
 """
 from __future__ import annotations
 
@@ -37,7 +39,8 @@ def obj_move(cost_fn, prev_cost: torch.Tensor, poses: torch.Tensor, dT_r: torch.
     """Algorithm 5 given the discrepancies; see :meth:`ParticleBelief.obj_move` for the user-facing call.
 
     Args:
-        cost_fn: ``poses (K, 4, 4) -> (K,)``: ``C^(X', .)`` on the newly observed features ``X'``.
+        cost_fn: ``poses (K, 4, 4) -> (K,)`` or ``-> ((K,), (K,))``: ``C^(X', .)`` on the newly observed features
+            ``X'``, or ``(C^, J)`` with ``J`` the objective to descend (see :func:`optimise_poses`).
         prev_cost: ``(P,)`` ``C^(X, T_{1..P})`` on the previous features (line 2).
         poses: ``(P, 4, 4)`` particles.
         dT_r: ``(4, 4)`` world-frame end-effector motion while in contact (None: identity).

@@ -8,9 +8,11 @@ Local parametrisation around base poses ``T0 = [[R0, t0], [0, 1]]`` (object -> w
   matrix_exp``, smooth at ``w = 0``, unlike the quaternion route whose gradient is NaN at zero).
 
 The paper says "SGD"; like chsel's own registration SGD (``chsel.sgd``) we use Adam, with separate step
-sizes for translation (m) and rotation (rad). Because Adam may overshoot within N_o = 10 steps, each
-particle keeps its lowest-cost iterate (the initial pose included), so optimisation never makes a particle
-worse under the cost it optimises.
+sizes for translation (m) and rotation (rad). The step direction is the gradient of RUMI Eq. 7-9 (residual
+times SDF gradient), i.e. of the squared-hinge :func:`activetouch.belief.discrepancy.optimisation_objective`,
+when the cost function returns it alongside the discrepancy. Because Adam may overshoot within N_o = 10 steps,
+each particle keeps its iterate with the lowest discrepancy C^ (the initial pose included), so optimisation
+never makes a particle worse under the cost its weight is computed from.
 """
 from __future__ import annotations
 
@@ -49,18 +51,29 @@ def local_poses(base: torch.Tensor, rot: torch.Tensor, trans: torch.Tensor, se2:
     return make_pose(R, t)
 
 
+def _cost_and_objective(cost_fn, T):
+    out = cost_fn(T)
+    if isinstance(out, tuple):
+        return out
+    return out, out
+
+
 def optimise_poses(
-    cost_fn: Callable[[torch.Tensor], torch.Tensor],
+    cost_fn: Callable[[torch.Tensor], torch.Tensor | tuple[torch.Tensor, torch.Tensor]],
     poses: torch.Tensor,
     n_steps: int,
     lr_t: float,
     lr_R: float,
     se2: bool,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Minimise ``cost_fn(poses (P, 4, 4)) -> (P,)`` with ``n_steps`` Adam steps per particle.
+    """Minimise over ``n_steps`` Adam steps per particle; ``cost_fn(poses (P, 4, 4))`` returns ``cost (P,)`` or
+    ``(cost (P,), objective (P,))``.
 
-    Particles are independent (the cost of one particle depends only on its pose), so the summed cost
-    gives each particle its own gradient. Returns ``(best poses (P, 4, 4), their costs (P,))``, detached.
+    With a pair the steps descend ``objective`` (RUMI Algorithms 4 and 5: the squared-hinge objective whose
+    gradient is Eq. 7-9) and each particle keeps its iterate with the lowest ``cost`` (the discrepancy C^);
+    with a single tensor both are ``cost``. Particles are independent (the cost of one particle depends only on
+    its pose), so the summed objective gives each particle its own gradient. Returns ``(best poses (P, 4, 4),
+    their costs (P,))``, detached.
     """
     base = poses.detach()
     P = base.shape[0]
@@ -68,7 +81,7 @@ def optimise_poses(
     trans = torch.zeros((P, 2) if se2 else (P, 3), dtype=base.dtype, device=base.device, requires_grad=True)
     best = base.clone()
     with torch.no_grad():
-        best_cost = cost_fn(base).detach().clone()
+        best_cost = _cost_and_objective(cost_fn, base)[0].detach().clone()
     if n_steps <= 0:
         return best, best_cost
     opt = torch.optim.Adam([{"params": [trans], "lr": float(lr_t)}, {"params": [rot], "lr": float(lr_R)}])
@@ -76,9 +89,9 @@ def optimise_poses(
         T = local_poses(base, rot, trans, se2)
         if k == n_steps:  # evaluate the last iterate
             with torch.no_grad():
-                c = cost_fn(T)
+                c, J = _cost_and_objective(cost_fn, T)
         else:
-            c = cost_fn(T)
+            c, J = _cost_and_objective(cost_fn, T)
         with torch.no_grad():
             if k > 0:  # k == 0 is the base pose, already recorded
                 better = torch.isfinite(c) & (c < best_cost)
@@ -87,7 +100,7 @@ def optimise_poses(
         if k == n_steps:
             break
         opt.zero_grad(set_to_none=True)
-        c.sum().backward()
+        J.sum().backward()
         for p in (rot, trans):
             if p.grad is not None:
                 p.grad.nan_to_num_(0.0, posinf=0.0, neginf=0.0)

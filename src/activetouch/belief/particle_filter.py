@@ -6,7 +6,8 @@ Weights are not recursive: every update re-weighs the particles on the full merg
 Robustness (documented behaviour, tested in tests/test_belief.py):
 
 * empty features: every discrepancy is 0, so weights are uniform (Eq. 3 is an empty sum) and no resample;
-* NaN/inf feature positions or poses: ``ValueError``;
+* NaN/inf feature positions or poses, non-rigid poses (``geometry.check_poses``), ``lam`` NaN or < 0, a prior
+  whose size is not ``config.num_particles``, or too few particles for CHSEL: ``ValueError``;
 * non-finite discrepancies (e.g. +inf for some particles): those particles get weight 0; if no particle
   has a finite discrepancy the weights fall back to uniform with a logged warning (there is no
   information to prefer any particle);
@@ -15,13 +16,15 @@ Robustness (documented behaviour, tested in tests/test_belief.py):
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import replace
 
 import torch
 
 from ..geometry import check_poses
-from .config import BeliefConfig
+from .config import BeliefConfig, chsel_min_batch
 from .discrepancy import discrepancy as _discrepancy
+from .discrepancy import discrepancy_and_objective as _discrepancy_and_objective
 from .objmove import obj_move as _obj_move
 from .objmove import project_se2_motion
 from .optimise import optimise_poses
@@ -37,8 +40,15 @@ def boltzmann_weights(l: torch.Tensor, lam: float) -> torch.Tensor:
 
     ``w_i = exp(-lam (l_i - min l)) / sum``: the minimum is subtracted for numerical stability (section
     IV-D). Particles with a non-finite (NaN or +inf) discrepancy get weight 0; if none is finite the
-    weights are uniform and a warning is logged.
+    weights are uniform and a warning is logged. ``lam`` must be finite and >= 0 (Eq. 10 has lam > 0;
+    0 gives uniform weights over the finite particles); anything else raises ``ValueError``.
     """
+    try:
+        lam_f = float(lam)
+    except (TypeError, ValueError, RuntimeError):
+        raise ValueError(f"lam must be a finite number >= 0, got {lam!r}") from None
+    if not math.isfinite(lam_f) or lam_f < 0:
+        raise ValueError(f"lam must be a finite number >= 0 (Eq. 10 peakiness), got {lam!r}")
     if l.ndim != 1 or l.numel() == 0:
         raise ValueError(f"discrepancies must have shape (P,) with P > 0, got {tuple(l.shape)}")
     l = l.detach()
@@ -48,7 +58,7 @@ def boltzmann_weights(l: torch.Tensor, lam: float) -> torch.Tensor:
         return torch.full_like(l, 1.0 / l.numel())
     lf = torch.where(finite, l, torch.zeros_like(l))
     lmin = lf[finite].min()
-    w = torch.where(finite, torch.exp(-float(lam) * (lf - lmin)), torch.zeros_like(l))
+    w = torch.where(finite, torch.exp(-lam_f * (lf - lmin)), torch.zeros_like(l))
     return w / w.sum()  # the minimum particle has weight 1 before normalising, so the sum is >= 1
 
 
@@ -128,7 +138,14 @@ class ParticleBelief:
                             exact=cfg.exact_sdf)
 
     def _cost_fn(self, features):
-        return lambda T: self.discrepancy(features, T)
+        """``T -> (C^(X, T), J(X, T))`` for Algorithms 4 and 5: descend J (Eq. 7-9), keep the lowest C^
+        (``config.opt_objective="linear_hinge"``: ``T -> C^(X, T)``, descend C^ itself)."""
+        cfg = self.config
+        if cfg.opt_objective == "linear_hinge":
+            return lambda T: self.discrepancy(features, T)
+        return lambda T: _discrepancy_and_objective(self.obj, features, T, free_scale=cfg.free_scale,
+                                                    violation_tolerance=cfg.violation_tolerance,
+                                                    exact=cfg.exact_sdf)
 
     # ------------------------------------------------------------------ Algorithm 2
     def weigh(self, features) -> torch.Tensor:
@@ -221,7 +238,8 @@ class ParticleBelief:
 
         Args:
             prev: ``Features`` X_{t-1} (picks the lowest-discrepancy particle T_i, line 2-3).
-            new: ``Features`` X'_t (the cost ``C^(X', dT_w T_i)`` optimised for N_o Adam steps).
+            new: ``Features`` X'_t: N_o Adam steps on ``dT_w T_i`` descend the Eq. 7-9 gradient
+                (:func:`~activetouch.belief.discrepancy.optimisation_objective`) and keep the lowest ``C^(X', .)``.
             dT_r: ``(4, 4)`` world-frame end-effector motion in contact (sticking-contact prior; None = I).
         Returns:
             ``(dT, dT_w)``: ``dT (4, 4)`` the object-frame (body) motion ``T_i^-1 dT_w T_i`` and ``dT_w (4, 4)``
@@ -244,12 +262,15 @@ class ParticleBelief:
 
         Args:
             obj: ``KnownObject``.
-            prior_poses: ``(P, 4, 4)`` prior particles (see :mod:`activetouch.belief.priors`).
+            prior_poses: ``(P, 4, 4)`` prior particles (see :mod:`activetouch.belief.priors`), rigid, with
+                ``P == config.num_particles`` (``ValueError`` otherwise).
             features: ``Features`` X_0.
             config: ``BeliefConfig``; ``config_overrides`` replace its fields (e.g. ``chsel_iterations=2``).
             use_chsel: register the prior with CHSEL (line 2, slow: ~10 s on a CPU). False keeps the prior
                 particles (faster, less accurate); either way the particles are then weighed (line 3).
-                Without any SURFACE feature CHSEL is skipped with a warning.
+                Without any SURFACE feature CHSEL is skipped with a warning. CHSEL needs at least
+                :func:`~activetouch.belief.config.chsel_min_batch` particles (``MIN_PARTICLES`` = 10 with the
+                default 5 rounds): ``ValueError`` below that, before any registration work.
             generator: torch generator (CHSEL's random numbers are seeded from it).
         """
         config = config if config is not None else BeliefConfig()
@@ -261,6 +282,17 @@ class ParticleBelief:
         prior = check_poses(prior_poses, "prior_poses")
         if prior.ndim != 3 or prior.shape[0] == 0:
             raise ValueError(f"prior_poses must have shape (P, 4, 4) with P > 0, got {tuple(prior.shape)}")
+        if prior.shape[0] != config.num_particles:
+            raise ValueError(f"prior_poses holds {prior.shape[0]} poses but config.num_particles is "
+                             f"{config.num_particles}: draw {config.num_particles} prior poses or set "
+                             f"num_particles={prior.shape[0]}")
+        if use_chsel:
+            B = prior.shape[0] if config.chsel_batch is None else min(config.chsel_batch, prior.shape[0])
+            need = chsel_min_batch(config.chsel_iterations)
+            if B < need:
+                raise ValueError(f"CHSEL initialisation with {config.chsel_iterations} round(s) needs at least "
+                                 f"{need} particles, got {B} (see activetouch.belief.MIN_PARTICLES); use more "
+                                 f"particles or use_chsel=False (--no-chsel)")
         poses = prior
         if use_chsel:
             from .discrepancy import SURFACE

@@ -22,6 +22,7 @@ __all__ = [
     "axis_angle_to_matrix",
     "perturb_transform",
     "check_poses",
+    "RIGID_TOLERANCE",
 ]
 
 
@@ -33,17 +34,43 @@ def _as_float_tensor(x, name: str) -> torch.Tensor:
     return x
 
 
-def check_poses(T, name: str = "T") -> torch.Tensor:
-    """Validate a pose batch: a float tensor of shape ``(..., 4, 4)`` with finite entries.
+#: Tolerance of :func:`check_poses` on ``|R R^T - I|``, ``|det R - 1|`` and the bottom row: float32 poses
+#: composed over many steps stay within ~1e-5 of orthonormal; a scaled or sheared matrix is far outside.
+RIGID_TOLERANCE = 1e-3
 
-    Returns the tensor (converted to float when given as a list/array). Raises ``ValueError``.
+
+def check_poses(T, name: str = "T", rigid: bool = True, tol: float = RIGID_TOLERANCE) -> torch.Tensor:
+    """Validate a pose batch: a float tensor of shape ``(..., 4, 4)`` with finite entries and, with
+    ``rigid=True`` (default), rigid transforms: rotation block orthonormal with determinant +1 and bottom row
+    ``[0, 0, 0, 1]``, each within ``tol`` (max absolute deviation).
+
+    Returns the tensor (converted to float when given as a list/array). Raises ``ValueError`` naming the
+    first offending pose. ``rigid=False`` checks shape and finiteness only (for general 4 x 4 matrices).
     """
     T = _as_float_tensor(T, name)
     if T.ndim < 2 or T.shape[-2:] != (4, 4):
         raise ValueError(f"{name} must have shape (..., 4, 4), got {tuple(T.shape)}")
     if not bool(torch.isfinite(T).all()):
         raise ValueError(f"{name} contains NaN or inf entries")
+    if rigid and T.numel():
+        with torch.no_grad():
+            Tf = T.detach().reshape(-1, 4, 4)
+            R = Tf[:, :3, :3]
+            # one (P, 14) deviation matrix and one host sync: R R^T - I (9), det R - 1 (1), bottom row - e_4 (4)
+            dev = torch.cat([(R @ R.transpose(-1, -2)).flatten(1), torch.linalg.det(R).unsqueeze(1), Tf[:, 3]], 1)
+            dev.sub_(_RIGID_TARGET.to(dev)).abs_()
+            worst = dev.amax(1)
+            if not float(worst.max()) <= tol:  # also catches NaN
+                i = int(torch.argmax(worst))
+                where = f" (pose {i} of {Tf.shape[0]})" if Tf.shape[0] > 1 else ""
+                raise ValueError(
+                    f"{name} must be rigid transforms{where}: max |R R^T - I| = {float(dev[i, :9].max()):.3g}, "
+                    f"det R = {float(torch.linalg.det(R[i])):.4g}, bottom row "
+                    f"{[round(float(v), 4) for v in Tf[i, 3]]} (tolerance {tol:g})")
     return T
+
+
+_RIGID_TARGET = torch.tensor([1.0, 0, 0, 0, 1, 0, 0, 0, 1, 1, 0, 0, 0, 1])
 
 
 def make_pose(R, t) -> torch.Tensor:
