@@ -278,13 +278,16 @@ class RumiPlanner:
             raise RuntimeError("KMPPI produced a non-finite action")
         return u, dict(self.last_timing)
 
-    def next_action(self, belief, ee_state, in_contact: bool, poses=None, weights=None
+    def next_action(self, belief, ee_state, in_contact: bool, poses=None, weights=None, features=None
                     ) -> tuple[np.ndarray, dict[str, float]]:
         """Replanning policy of V-F: replan after ``replan_every`` executed actions or on contact.
 
         ``belief`` is anything with ``.poses (P, 4, 4)`` and ``.weights (P,)`` (a ``ParticleBelief``) or None
         when ``poses`` and ``weights`` are given (or a field was set with :meth:`set_field`). Between replans
         the remaining planned actions are executed in order (and shifted out of the KMPPI nominal trajectory).
+        ``features``: the accumulated observations ``X`` (:class:`activetouch.observations.Features`), passed on
+        to :meth:`plan`; unused by RUMI (its fields depend on ``X`` only through the particles), taken so that
+        every registered planner has the same signature.
         Returns ``(u (Nu,), timings)``; timings are zero for steps that did not replan (``replanned`` = 0).
         """
         if belief is not None:
@@ -294,7 +297,7 @@ class RumiPlanner:
         c = self.config
         must = (not self._queue or self._since_plan >= c.replan_every or (in_contact and c.replan_on_contact))
         if must:
-            u, timing = self.plan(poses, weights, ee_state)
+            u, timing = self.plan(poses, weights, ee_state, features=features)
             self._queue = [a for a in self.planned_actions[1:]]
             self._since_plan = 1
             timing["replanned"] = 1.0
