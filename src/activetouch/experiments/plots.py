@@ -180,3 +180,107 @@ def curves_figure(path, rows: Sequence[dict], *, nll_threshold: float | None = N
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return Path(path)
+
+
+#: Colours of the methods in :func:`nll_grid_figure` (fixed, so every figure of a report reads the same).
+METHOD_COLORS = {"rumi": "#1f77b4", "info-only": "#ff7f0e", "reach-only": "#2ca02c", "gpvr": "#d62728",
+                 "slide": "#9467bd"}
+
+
+def panel_layout(tasks: Sequence[str]) -> tuple[list[str], list[int], dict[str, tuple[int, int]]]:
+    """Grid of Fig. 16 for ``tasks`` named ``<object>-<configuration>``: rows the objects present (mug, drill, box
+    first), columns the configurations present; returns ``(row objects, column configurations, {task: (i, j)})``."""
+    from .tables import OBJECTS, configuration_of, object_of
+
+    objs = sorted({object_of(t) for t in tasks}, key=lambda o: (OBJECTS.index(o) if o in OBJECTS else len(OBJECTS), o))
+    confs = sorted({configuration_of(t) for t in tasks})
+    return objs, confs, {t: (objs.index(object_of(t)), confs.index(configuration_of(t))) for t in tasks}
+
+
+def nll_grid_figure(path, curves: dict[str, dict[str, dict]], *, thresholds: dict[str, float] | None = None,
+                    log_y: bool = True, note: str | None = None, title: str | None = None,
+                    labels: dict[str, str] | None = None, panel_size: tuple[float, float] = (4.2, 3.0),
+                    dpi: int = 110):
+    """Save RUMI Fig. 16: the NLL after each execution step, one panel per task (rows objects, columns
+    configurations, :func:`panel_layout`), one line per method: the median over the seeds with the 25-75 %
+    band shaded.
+
+    Args:
+        curves: ``{task: {method: {"step", "median", "q25", "q75" (arrays), "n" (seeds)}}}``.
+        thresholds: Table III success threshold per task, drawn dashed.
+        log_y: log-scale NLL axis.
+        note: text under the grid (how the curves were made).
+        labels: legend names of the methods.
+    """
+    from .tables import method_order
+
+    labels = labels or {}
+    tasks = [t for t in curves if curves[t]]
+    if not tasks:
+        raise ValueError("nll_grid_figure needs at least one task with curves")
+    objs, confs, where = panel_layout(tasks)
+    pw, ph = panel_size
+    import math
+    import textwrap
+
+    n_entries = len({m for t in tasks for m in curves[t]}) + (1 if thresholds else 0)
+    W = 0.9 + pw * len(confs)
+    ncol = min(n_entries, max(1, int(W // 1.9)))
+    legend_h = 0.28 * math.ceil(n_entries / ncol)
+    note_lines = textwrap.wrap(note, max(40, int(W * 15))) if note else []
+    top = 0.45 + legend_h + (0.3 if title else 0.0)
+    bottom = 0.6 + 0.16 * len(note_lines)
+    H = top + bottom + ph * len(objs)
+    fig, axes = plt.subplots(len(objs), len(confs), figsize=(W, H), squeeze=False)
+    fig.subplots_adjust(left=0.8 / W, right=1 - 0.15 / W, top=1 - top / H, bottom=bottom / H,
+                        wspace=0.28, hspace=0.42)
+    used = set(where.values())
+    for i in range(len(objs)):
+        for j in range(len(confs)):
+            if (i, j) not in used:
+                axes[i, j].axis("off")
+    methods = method_order({m for t in tasks for m in curves[t]}, with_paper=False)
+    handles = {}
+    for t in tasks:
+        ax = axes[where[t]]
+        for m in methods:
+            c = curves[t].get(m)
+            if c is None:
+                continue
+            color = METHOD_COLORS.get(m, f"C{5 + methods.index(m) % 5}")
+            x = np.asarray(c["step"])
+            ax.fill_between(x, c["q25"], c["q75"], color=color, alpha=0.2, linewidth=0)
+            (ln,) = ax.plot(x, c["median"], color=color, lw=1.6)
+            handles.setdefault(m, ln)
+        thr = (thresholds or {}).get(t)
+        if thr is not None:
+            h = ax.axhline(thr, color="0.35", ls="--", lw=1)
+            handles.setdefault("_threshold", h)
+        if log_y:
+            from matplotlib import ticker
+
+            ax.set_yscale("log")
+            ax.yaxis.set_major_formatter(ticker.LogFormatter())  # plain numbers (40, 100), not 4 x 10^1
+            ax.yaxis.set_minor_formatter(ticker.LogFormatter(labelOnlyBase=False, minor_thresholds=(1, 0.5)))
+        ax.set_title(f"sim {objs[where[t][0]]} {confs[where[t][1]]}", fontsize=10)
+        ax.grid(True, which="major", alpha=0.3)
+        ax.tick_params(labelsize=8)
+        if where[t][1] == 0 or (where[t][0], 0) not in used:
+            ax.set_ylabel("nll(X)" + (" (log)" if log_y else ""), fontsize=9)
+        if where[t][0] == len(objs) - 1 or (where[t][0] + 1, where[t][1]) not in used:
+            ax.set_xlabel("execution step", fontsize=9)
+    names = [labels.get(m, m) + "" for m in methods if m in handles]
+    hs = [handles[m] for m in methods if m in handles]
+    if "_threshold" in handles:
+        hs.append(handles["_threshold"])
+        names.append("Table III success threshold")
+    fig.legend(hs, names, loc="upper center", ncol=ncol, frameon=False, fontsize=9,
+               bbox_to_anchor=(0.5, 1 - (0.3 if title else 0.05) / H))
+    if title:
+        fig.suptitle(title, y=1 - 0.05 / H, va="top", fontsize=11)
+    if note_lines:
+        fig.text(0.5, 0.1 / H, "\n".join(note_lines), ha="center", va="bottom", fontsize=8, color="0.25")
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return Path(path)
