@@ -21,20 +21,30 @@ fi
 VPY=.venv/bin/python
 $VPY -m pip install -q --upgrade pip >/dev/null 2>&1 || true
 
+# torch: no package index address is written here. Indexes come from the user's pip configuration
+# (pip.conf / PIP_INDEX_URL / PIP_FIND_LINKS) or, for PyTorch's CPU wheels, from ACTIVETOUCH_TORCH_INDEX
+# (see README "Installing"). Order: CUDA build when an NVIDIA GPU is present; else a CPU build (+cpu) that
+# the pip configuration can find (a local wheel folder, a mirror); else the CPU build from
+# ACTIVETOUCH_TORCH_INDEX; else the default build, with a note (on Linux that is the multi-GB CUDA build).
 if ! $VPY -c "import torch" 2>/dev/null; then
+    TMPW=$(mktemp -d)
     if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then
         echo "[setup] NVIDIA GPU found: installing torch==$TORCH_VERSION (CUDA build)"
         $VPY -m pip install -q "torch==$TORCH_VERSION"
-    elif TMPW=$(mktemp -d) && $VPY -m pip download -q --no-deps --no-index -d "$TMPW" "torch==$TORCH_VERSION" 2>/dev/null \
+    elif $VPY -m pip download -q --no-deps -d "$TMPW" "torch==$TORCH_VERSION+cpu" >/dev/null 2>&1 \
             && ls "$TMPW"/torch-*+cpu-*.whl >/dev/null 2>&1; then
-        echo "[setup] installing torch==$TORCH_VERSION from a local CPU wheel"
+        echo "[setup] installing the CPU build of torch==$TORCH_VERSION found through the pip configuration"
         $VPY -m pip install -q "$TMPW"/torch-*.whl
+    elif [ -n "${ACTIVETOUCH_TORCH_INDEX:-}" ]; then
+        echo "[setup] installing the CPU build of torch==$TORCH_VERSION from \$ACTIVETOUCH_TORCH_INDEX"
+        $VPY -m pip install -q "torch==$TORCH_VERSION+cpu" --extra-index-url "$ACTIVETOUCH_TORCH_INDEX"
     else
-        echo "[setup] installing the CPU build of torch==$TORCH_VERSION"
-        $VPY -m pip install -q "torch==$TORCH_VERSION" \
-            --index-url "${TORCH_INDEX_URL:-https://download.pytorch.org/whl/cpu}" \
-            --extra-index-url "${PIP_MAIN_INDEX:-https://pypi.org/simple}"
+        echo "[setup] no CPU build of torch==$TORCH_VERSION is reachable through your pip configuration and"
+        echo "[setup] ACTIVETOUCH_TORCH_INDEX is unset: installing the default build (on Linux the CUDA build,"
+        echo "[setup] several GB). Set ACTIVETOUCH_TORCH_INDEX to PyTorch's CPU wheel index for the CPU build."
+        $VPY -m pip install -q "torch==$TORCH_VERSION"
     fi
+    rm -rf "$TMPW"
 fi
 
 echo "[setup] installing activetouch and its dependencies"

@@ -28,7 +28,9 @@ def test_tasks_lists_nine(capsys):
 
 
 @pytest.mark.parametrize("args, message", [(["--steps", "0"], "steps must be"), (["--particles", "0"], "particles must"),
-                                           (["--seed", "-1"], "seed must")])
+                                           (["--seed", "-1"], "seed must"),
+                                           (["--particles", "1"], "needs at least 10 particles"),
+                                           (["--particles", "2", "--chsel-iterations", "1"], "needs at least 3")])
 def test_bad_episode_arguments_are_clear_errors(capsys, tmp_path, args, message):
     assert main(["run", "mug-0", "--out", str(tmp_path), *args]) == 2
     assert message in capsys.readouterr().err
@@ -37,3 +39,81 @@ def test_bad_episode_arguments_are_clear_errors(capsys, tmp_path, args, message)
 def test_unknown_task_is_a_clear_error(capsys, tmp_path):
     assert main(["run", "mug-9", "--out", str(tmp_path)]) == 2
     assert "unknown task 'mug-9'" in capsys.readouterr().err
+
+
+def _err(capsys):
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err
+    return err
+
+
+def test_sweep_has_one_spelling_for_methods(capsys, tmp_path):
+    # `--method` used to parse too and was silently ignored (the sweep ran rumi)
+    with pytest.raises(SystemExit) as e:
+        main(["sweep", "--tasks", "mug-0", "--method", "info-only", "--out", str(tmp_path)])
+    assert e.value.code == 2
+    assert "unrecognized arguments: --method" in _err(capsys)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--tasks", "mug-0", "mug-9"], "unknown task 'mug-9'"),
+    (["--tasks", "mug-0", "--methods", "rumi", "nope"], "unknown method 'nope'"),
+    (["--tasks", "mug-0", "--seeds", "0"], "--seeds must be >= 1"),
+    (["--tasks", "mug-0", "--workers", "0"], "workers must be >= 1"),
+    (["--tasks", "mug-0", "--horizon", "2"], "num_support_pts (8) must be <= horizon (2)"),
+    (["--tasks", "mug-0", "--device", "cuda:7" if __import__("torch").cuda.is_available() else "cuda"], "cuda"),
+    (["--tasks", "mug-0", "--device", "tpu"], "is not a torch device"),
+])
+def test_bad_sweeps_fail_before_any_episode(capsys, tmp_path, args, message):
+    out = tmp_path / "sweep"
+    assert main(["sweep", *args, "--out", str(out)]) == 2
+    assert message in _err(capsys)
+    assert not out.exists() or not any(out.iterdir()), "a rejected sweep left folders behind"
+
+
+def test_output_that_is_a_file_is_a_clear_error(capsys, tmp_path):
+    f = tmp_path / "file"
+    f.write_text("x")
+    assert main(["run", "mug-0", "--out", str(f)]) == 2
+    assert "is not a folder" in _err(capsys)
+
+
+def test_bad_planner_override_fails_before_work(capsys, tmp_path):
+    assert main(["run", "mug-0", "--horizon", "2", "--out", str(tmp_path / "r")]) == 2
+    assert "horizon" in _err(capsys)
+    assert not (tmp_path / "r").exists()
+
+
+def _fake_episode(root, task, method, seed, **cfg):
+    from dataclasses import asdict
+
+    from activetouch.experiments.records import write_json_atomic
+    from activetouch.experiments.runner import EpisodeConfig, episode_dir
+
+    d = episode_dir(root, task, method, seed)
+    config = asdict(EpisodeConfig(task=task, method=method, seed=seed, **cfg))
+    write_json_atomic(d / "summary.json", {"task": task, "method": method, "seed": seed, "success": True,
+                                           "strict_success": True, "first_strict_success_step": 1,
+                                           "cumulative_nll": 10.0, "initial_nll": 5.0, "config": config})
+    return d
+
+
+def test_sweep_resumed_with_other_settings_is_refused(capsys, tmp_path):
+    _fake_episode(tmp_path, "mug-0", "rumi", 0, steps=40)
+    assert main(["sweep", "--tasks", "mug-0", "--seeds", "1", "--steps", "30", "--out", str(tmp_path)]) == 2
+    err = _err(capsys)
+    assert "other settings" in err and "steps: 40 != 30" in err
+
+
+def test_table_refuses_mixed_settings_and_repeated_seeds(capsys, tmp_path):
+    _fake_episode(tmp_path / "a", "mug-0", "rumi", 0)
+    _fake_episode(tmp_path / "a", "mug-0", "rumi", 1, particles=10)
+    assert main(["table", str(tmp_path / "a")]) == 2
+    assert "different settings" in _err(capsys)
+    _fake_episode(tmp_path / "b" / "x", "mug-0", "rumi", 3)
+    _fake_episode(tmp_path / "b" / "y", "mug-0", "rumi", 3)
+    assert main(["table", str(tmp_path / "b")]) == 2
+    assert "occurs twice" in _err(capsys)
+    assert main(["table", str(tmp_path / "b" / "x")]) == 0
+    out = capsys.readouterr().out
+    assert "1 episodes" in out and "| mug-0 | rumi | 1/1 |" in out

@@ -6,7 +6,8 @@
     activetouch run mug-0 --method rumi --seed 0 --out runs/mug0
     activetouch sweep --tasks mug-0 mug-1 --methods rumi info-only --seeds 10 --out runs/sweep --workers 2
     activetouch table runs/sweep               results next to the paper's Tables V/VI
-    activetouch demo                           RUMI on mug-0 with figures (the README's demo)
+    activetouch report runs/sweep              Tables V, VI, VII as CSV + Markdown and the Fig. 16 NLL curves
+    activetouch demo                           RUMI on mug-2 with figures (the README's demo)
     activetouch bench {belief,step,planning,all}
 """
 from __future__ import annotations
@@ -18,13 +19,16 @@ import sys
 from pathlib import Path
 
 
-def _episode_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--method", default="rumi", help="registered method (see `activetouch methods`)")
+def _episode_args(p: argparse.ArgumentParser, method: bool = True) -> None:
+    if method:  # a sweep takes --methods instead (one spelling per command: no silently ignored --method)
+        p.add_argument("--method", default="rumi", help="registered method (see `activetouch methods`)")
     p.add_argument("--steps", type=int, default=None, help="steps T (default: the task's, 40)")
     p.add_argument("--particles", type=int, default=100, help="pose particles P (Table IV: 100)")
     p.add_argument("--device", default="cuda" if _cuda() else "cpu", help="torch device (default: cuda if present)")
     p.add_argument("--no-chsel", action="store_true", help="skip CHSEL initialisation (faster, worse prior)")
     p.add_argument("--chsel-iterations", type=int, default=5)
+    p.add_argument("--no-chsel-at-contact", action="store_true", help="when the first view holds no surface point "
+                   "(drill, box), do not run CHSEL at the first contact (see EpisodeConfig.chsel_at_first_contact)")
     p.add_argument("--estimate-dT", action="store_true", help="estimate object motion with ObjMove (Alg. 5) "
                    "instead of observing it as the paper does in sim")
     p.add_argument("--samples", type=int, default=None, help="KMPPI samples (paper: 500)")
@@ -48,8 +52,9 @@ def _episode_config(a, task: str, seed: int):
 
     planner = {k: v for k, v in (("num_samples", a.samples), ("rollout_samples", a.rollouts), ("horizon", a.horizon))
                if v is not None}
-    return EpisodeConfig(task=task, method=a.method, seed=seed, steps=a.steps, particles=a.particles, device=a.device,
-                         use_chsel=not a.no_chsel, chsel_iterations=a.chsel_iterations, observe_dT=not a.estimate_dT,
+    return EpisodeConfig(task=task, method=getattr(a, "method", "rumi"), seed=seed, steps=a.steps, particles=a.particles, device=a.device,
+                         use_chsel=not a.no_chsel, chsel_iterations=a.chsel_iterations,
+                         chsel_at_first_contact=not a.no_chsel_at_contact, observe_dT=not a.estimate_dT,
                          terminate_on_convergence=not a.no_terminate, planner=planner, figures=not a.no_figures)
 
 
@@ -66,8 +71,11 @@ def _print_summary(s: dict, out: Path) -> None:
     print(f"  cumulative nll  {s['cumulative_nll']:10.1f}")
     print(f"  steps           {s['steps']:10d}   converged (APC < beta_t l_c): {s['converged']}")
     if s.get("final_mean_rot_err_deg") is not None:
-        print(f"  weighted rotation error {s['initial_mean_rot_err_deg']:.1f} deg at step 0 -> "
-              f"{s['final_mean_rot_err_deg']:.1f} deg at the end")
+        t = s.get("first_contact_step")
+        before = (f"{s['mean_rot_err_deg_before_contact']:.1f} deg before the first contact (step {t}) -> "
+                  if t is not None else "no contact -> ")
+        print(f"  weighted rotation error {s['initial_mean_rot_err_deg']:.1f} deg at step 0 (first view) -> "
+              f"{before}{s['final_mean_rot_err_deg']:.1f} deg at the end")
     if s.get("median_plan_s") is not None:
         print(f"  median plan s   {s['median_plan_s']:10.3f}")
     files = [f for f in ("steps.csv", "summary.json", "curves.png", "belief.png", "contact.png") if (out / f).exists()]
@@ -83,14 +91,18 @@ def cmd_run(a) -> int:
     return 0
 
 
+DEMO_TASK = "mug-2"  # the handle faces away from the camera: the first view leaves the yaw open on any machine
+
+
 def cmd_demo(a) -> int:
     from activetouch.experiments.runner import run_episode
 
     out = Path(a.out)
     print("activetouch demo: RUMI (information gain + reachability, KMPPI) rummaging for the pose of a mug whose\n"
-          "handle the camera cannot see (task mug-0). Writes figures and per-step results to", out)
+          "handle faces away from the camera (task mug-2): the first view cannot tell the mug's yaw, touching the\n"
+          "handle can. Writes figures and per-step results to", out)
     a.method = "rumi"
-    s = run_episode(_episode_config(a, "mug-0", a.seed), out)
+    s = run_episode(_episode_config(a, DEMO_TASK, a.seed), out)
     _print_summary(s, out)
     return 0
 
@@ -99,6 +111,10 @@ def cmd_sweep(a) -> int:
     from activetouch.experiments.runner import EpisodeConfig, run_sweep
     from activetouch.experiments.tables import markdown_table
 
+    if a.seeds < 1:
+        raise ValueError(f"--seeds must be >= 1, got {a.seeds}")
+    if a.seed0 < 0:
+        raise ValueError(f"--seed0 must be >= 0, got {a.seed0}")
     base = _episode_config(a, a.tasks[0], 0)
     summaries = run_sweep(a.tasks, a.methods, list(range(a.seed0, a.seed0 + a.seeds)), a.out,
                           base=EpisodeConfig(**{**base.__dict__, "figures": not a.no_figures}),
@@ -113,11 +129,27 @@ def cmd_table(a) -> int:
     from activetouch.experiments.records import load_summaries
     from activetouch.experiments.tables import markdown_table
 
+    from activetouch.experiments.records import check_same_settings, settings_key
+
+    if not Path(a.root).is_dir():
+        raise ValueError(f"{a.root!r} is not a folder")
     dirs = sorted({p.parent for p in Path(a.root).rglob("summary.json")})
-    if not dirs:
-        print(f"no finished episodes (summary.json) under {a.root}", file=sys.stderr)
-        return 1
-    print(markdown_table(load_summaries(dirs)))
+    summaries = load_summaries(dirs)
+    if not summaries:
+        raise ValueError(f"no finished episodes (summary.json) under {a.root}")
+    settings = check_same_settings(summaries)
+    print(f"{len(summaries)} episodes, settings {settings_key(summaries[0]['config'])}: "
+          + ", ".join(f"{k}={v}" for k, v in settings.items()))
+    print(markdown_table(summaries))
+    return 0
+
+
+def cmd_report(a) -> int:
+    from activetouch.experiments.report import build_report, format_report
+
+    if not Path(a.root).is_dir():
+        raise ValueError(f"{a.root!r} is not a folder")
+    print(format_report(build_report(a.root, a.out)))
     return 0
 
 
@@ -172,24 +204,26 @@ def cmd_bench(a) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="activetouch", description="Active tactile pose estimation of known objects.")
+    p = argparse.ArgumentParser(prog="activetouch", description="Active tactile pose estimation of known objects.",
+                                allow_abbrev=False)
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="cmd", required=True)
 
-    r = sub.add_parser("run", help="run one episode of a method on a task")
+    r = sub.add_parser("run", help="run one episode of a method on a task", allow_abbrev=False)
     r.add_argument("task")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--out", default=None, help="output folder (default runs/TASK-METHOD-seedS)")
     _episode_args(r)
     r.set_defaults(func=cmd_run)
 
-    d = sub.add_parser("demo", help="RUMI on mug-0 with figures (the README's demo)")
+    d = sub.add_parser("demo", help="RUMI on mug-2 with figures (the README's demo)", allow_abbrev=False)
     d.add_argument("--out", default="runs/demo")
     d.add_argument("--seed", type=int, default=0)
     _episode_args(d)
     d.set_defaults(func=cmd_demo)
 
-    s = sub.add_parser("sweep", help="run tasks x methods x seeds (resumes: finished episodes are skipped)")
+    s = sub.add_parser("sweep", help="run tasks x methods x seeds (resumes: finished episodes are skipped)",
+                       allow_abbrev=False)
     s.add_argument("--tasks", nargs="+", required=True)
     s.add_argument("--methods", nargs="+", default=["rumi"])
     s.add_argument("--seeds", type=int, default=10, help="number of seeds")
@@ -197,12 +231,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="runs/sweep")
     s.add_argument("--workers", type=int, default=1)
     s.add_argument("--backend", choices=["process", "ray"], default="process")
-    _episode_args(s)
+    _episode_args(s, method=False)
     s.set_defaults(func=cmd_sweep)
 
     t = sub.add_parser("table", help="table of finished episodes under a folder, next to the paper's")
     t.add_argument("root")
     t.set_defaults(func=cmd_table)
+
+    rp = sub.add_parser("report", help="Tables V, VI, VII (CSV + Markdown) and Fig. 16 curves of a finished sweep")
+    rp.add_argument("root")
+    rp.add_argument("--out", default=None, help="output folder (default ROOT/report)")
+    rp.set_defaults(func=cmd_report)
 
     sub.add_parser("tasks", help="list tasks").set_defaults(func=cmd_tasks)
     sub.add_parser("methods", help="list methods").set_defaults(func=cmd_methods)

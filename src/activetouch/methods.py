@@ -1,4 +1,5 @@
-"""Built-in methods: RUMI and its two ablations of section V-H (same belief, same parameters otherwise)."""
+"""Built-in methods: RUMI, its two ablations and the two baselines of section V-H (GPVR, Slide); all share the
+belief (Algorithm 1), the ablations and GPVR also share RUMI's KMPPI and dynamics."""
 from __future__ import annotations
 
 from activetouch.registry import register_method
@@ -25,3 +26,26 @@ def make_reach_only(env, belief_config, seed, **overrides):
     from activetouch.planning.rumi import RumiPlanner
 
     return RumiPlanner.from_env(env, belief_config, seed, config=RumiPlannerConfig.reach_only(), **overrides)
+
+
+@register_method("scripted", "no planning: replays planner={'actions': [[...], ...]} (tests, benchmarks, replays)")
+def make_scripted(env, belief_config, seed, actions=None):
+    from activetouch.planning.scripted import ScriptedPlanner
+
+    return ScriptedPlanner.from_env(env, actions)
+
+
+@register_method("gpvr", "Baseline GPVR (V-H): GP implicit surface (Matern 1.5) variance, Eq. 37 running cost, "
+                         "RUMI's KMPPI and dynamics f^")
+def make_gpvr(env, belief_config, seed, **overrides):
+    from activetouch.planning.gpvr import GpvrPlanner
+
+    return GpvrPlanner.from_env(env, belief_config, seed, **overrides)
+
+
+@register_method("slide", "Baseline Slide (V-H): slide tangentially along the contact (direction drawn per run), "
+                          "else move toward the particles' centre")
+def make_slide(env, belief_config, seed, **overrides):
+    from activetouch.planning.slide import SlidePlanner
+
+    return SlidePlanner.from_env(env, belief_config, seed, **overrides)

@@ -14,8 +14,9 @@ from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 STEP_COLUMNS: tuple[str, ...] = (
-    "step", "nll", "apc", "n_features", "n_surface", "in_contact", "resampled", "active_share",
-    "trans_err", "rot_err_deg", "mean_rot_err_deg", "replanned", "plan_s", "field_s", "dynamics_s", "cost_s", "update_s", "step_s",
+    "step", "nll", "apc", "n_features", "n_surface", "n_free", "in_contact", "resampled", "chsel", "active_share",
+    "trans_err", "rot_err_deg", "mean_rot_err_deg", "true_discrepancy", "replanned", "plan_s", "field_s", "dynamics_s", "cost_s",
+    "gp_fit_s", "update_s", "step_s",
 )
 
 
@@ -97,6 +98,61 @@ def is_finished(episode_dir: str | os.PathLike) -> bool:
         return False
 
 
+#: Config fields that name an episode inside a sweep (or only change what is printed/plotted), not its settings.
+RUN_FIELDS: tuple[str, ...] = ("task", "method", "seed", "progress", "figures")
+
+
+def settings_of(config: dict[str, Any]) -> dict[str, Any]:
+    """The settings of an episode: its ``EpisodeConfig`` as a dict without :data:`RUN_FIELDS`.
+
+    Two episodes of one table must share these; a sweep resumed with other settings must not reuse them.
+    """
+    if not isinstance(config, dict):
+        raise ValueError(f"an episode config must be a dict, got {type(config).__name__}")
+    return {k: v for k, v in sorted(config.items()) if k not in RUN_FIELDS}
+
+
+def settings_key(config: dict[str, Any]) -> str:
+    """Short stable hash of :func:`settings_of` (for printing and grouping)."""
+    import hashlib
+
+    blob = json.dumps(settings_of(config), sort_keys=True, default=_json_default)
+    return hashlib.sha256(blob.encode()).hexdigest()[:10]
+
+
+def settings_diff(a: dict[str, Any], b: dict[str, Any]) -> str:
+    """``"steps: 40 != 30, particles: 100 != 10"`` for two configs (empty when their settings agree)."""
+    sa, sb = settings_of(a), settings_of(b)
+    keys = sorted(set(sa) | set(sb))
+    return ", ".join(f"{k}: {sa.get(k, '<unset>')!r} != {sb.get(k, '<unset>')!r}" for k in keys
+                     if sa.get(k, "<unset>") != sb.get(k, "<unset>"))
+
+
+def check_same_settings(summaries: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The common settings of ``summaries``; ``ValueError`` naming the first difference, or a (task, method, seed)
+    that occurs twice (a table that counts one seed twice, or mixes settings, is silently wrong)."""
+    seen: dict[tuple, str] = {}
+    first = None
+    for s in summaries:
+        cfg = s.get("config")
+        if cfg is None:
+            raise ValueError(f"summary of {s.get('task')}/{s.get('method')}/seed {s.get('seed')} has no config")
+        key = (s["task"], s["method"], s["seed"])
+        where = s.get("_dir", "?")
+        if key in seen:
+            raise ValueError(f"{key[1]} on {key[0]} seed {key[2]} occurs twice ({seen[key]} and {where}): "
+                             "aggregate one sweep folder at a time")
+        seen[key] = where
+        if first is None:
+            first = s
+        else:
+            diff = settings_diff(first["config"], cfg)
+            if diff:
+                raise ValueError(f"episodes with different settings: {first.get('_dir', '?')} vs {where} ({diff});"
+                                 " tables aggregate runs of one setting only")
+    return settings_of(first["config"]) if first is not None else {}
+
+
 def load_summaries(dirs: Iterable[str | os.PathLike]) -> list[dict[str, Any]]:
     """Summaries of the finished episodes in ``dirs``; fields added to ``summary.json`` later (the step-0 and
     strict successes) are recomputed from ``steps.csv`` for episodes run before them."""
@@ -112,5 +168,6 @@ def load_summaries(dirs: Iterable[str | os.PathLike]) -> list[dict[str, Any]]:
             rows = read_steps(steps)
             s.update(success_fields([r["nll"] for r in rows], [r["mean_rot_err_deg"] for r in rows],
                                     s["nll_threshold"]))
+        s["_dir"] = str(d)
         out.append(s)
     return out

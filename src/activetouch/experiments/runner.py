@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -35,6 +36,11 @@ class EpisodeConfig:
     device: str = "cpu"
     use_chsel: bool = True
     chsel_iterations: int = 5
+    # When X_0 holds no surface point (drill and box: the camera does not see the object) CHSEL has nothing to
+    # register at line 2; with this on it runs once at the first step whose X_t holds surface points, from the
+    # current particles (OUR ADAPTATION: the paper initialises with CHSEL "over the workspace prior" and does not
+    # say what happens without surface points).
+    chsel_at_first_contact: bool = True
     observe_dT: bool = True  # the paper observes dT in sim; False estimates it with ObjMove (Algorithm 5)
     terminate_on_convergence: bool = True
     beta_t: float = 0.03  # APC convergence ratio (Table IV)
@@ -57,6 +63,85 @@ class EpisodeConfig:
             raise ValueError(f"beta_t must be in (0, 1), got {self.beta_t!r}")
         if self.chsel_iterations < 1:
             raise ValueError(f"chsel_iterations must be >= 1, got {self.chsel_iterations!r}")
+
+
+def check_device(device: str) -> torch.device:
+    """``torch.device`` of ``device``; ValueError when the name is not a device or the device is not available."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as e:
+        raise ValueError(f"--device {device!r} is not a torch device ({e}); use cpu or cuda") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {device!r}: CUDA is not available here (torch {torch.__version__}); use cpu")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ValueError(f"--device {device!r}: only {torch.cuda.device_count()} CUDA device(s) here")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"--device {device!r}: activetouch runs on cpu or cuda")
+    return dev
+
+
+def check_output_dir(out_dir: str | Path) -> Path:
+    """``out_dir`` as a Path after checking it is (or can be made) a writable folder; ValueError otherwise."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"output folder {str(out)!r} exists and is not a folder")
+    probe = out
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        raise ValueError(f"output folder {str(out)!r} cannot be written ({str(probe)!r} is not writable)")
+    return out
+
+
+def check_config(cfg: EpisodeConfig, out_dir: str | Path | None = None):
+    """Every check that can fail before the long work of an episode starts (ValueError naming the problem):
+    the task and method exist, the device is available, the particle count is one the belief handles, the
+    output folder is writable and the planner accepts ``cfg.planner`` (built once on the task's env).
+    Returns ``(env, method)``."""
+    from activetouch import sim
+    from activetouch.belief import BeliefConfig, chsel_min_batch
+    from activetouch.registry import get_method
+
+    if cfg.task not in sim.registered():
+        raise ValueError(f"unknown task {cfg.task!r}; available: {', '.join(sim.registered())}")
+    method = get_method(cfg.method)
+    check_device(cfg.device)
+    if out_dir is not None:
+        check_output_dir(out_dir)
+    if cfg.use_chsel and cfg.particles < chsel_min_batch(cfg.chsel_iterations):
+        raise ValueError(f"particles = {cfg.particles}: CHSEL (Alg. 1 line 2) with {cfg.chsel_iterations} rounds needs "
+                         f"at least {chsel_min_batch(cfg.chsel_iterations)} particles; use more or --no-chsel")
+    env = sim.make(cfg.task, seed=cfg.seed, observe_dT=cfg.observe_dT)
+    BeliefConfig(num_particles=cfg.particles, se2=env.spec.se2, chsel_iterations=cfg.chsel_iterations)
+    try:
+        method.make_planner(env, BeliefConfig(num_particles=cfg.particles, se2=env.spec.se2), cfg.seed, **cfg.planner)
+    except TypeError as e:  # an override the factory does not take
+        raise ValueError(f"method {cfg.method!r} does not accept the planner settings {cfg.planner}: {e}") from None
+    return env, method
+
+
+def platform_info() -> dict[str, Any]:
+    """What makes two machines' numbers differ: CPU, library versions, threads (for ``summary.json``)."""
+    import platform
+
+    import mujoco
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return {"cpu": cpu, "machine": platform.machine(), "system": platform.platform(), "python": platform.python_version(),
+            "torch": torch.__version__, "mujoco": mujoco.__version__, "numpy": np.__version__,
+            "torch_threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
+            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+
+
+FIGURES = ("curves.png", "belief.png", "contact.png")
 
 
 def _as_tensor(x, device) -> torch.Tensor:
@@ -111,11 +196,15 @@ def _is_motion(dT: torch.Tensor, tol_m: float, tol_rad: float) -> bool:
     return bool(metrics.translation_error(dT, eye) > tol_m or metrics.rotation_error(dT, eye) > tol_rad)
 
 
-def _step_metrics(obj, belief, true_pose, device) -> dict[str, float]:
+def _step_metrics(obj, belief, true_pose, device, X=None) -> dict[str, float]:
     T = _as_tensor(true_pose, device)
     poses, w = belief.poses, belief.weights
     best = poses[torch.argmax(w)]
-    return {
+    extra = {}
+    if X is not None:  # privileged diagnostic: is the evidence consistent with the truth? (small: yes)
+        with torch.no_grad():
+            extra["true_discrepancy"] = float(belief.discrepancy(X, T.unsqueeze(0))[0])
+    return {**extra,
         "nll": float(metrics.nll(obj, poses, w, T)),
         "apc": float(metrics.apc(obj, poses)),
         "active_share": float(metrics.active_share(w)),
@@ -128,28 +217,29 @@ def _step_metrics(obj, belief, true_pose, device) -> dict[str, float]:
 
 def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
     """Run one episode of Algorithm 1 and write ``steps.csv``, ``summary.json`` and figures to ``out_dir``."""
-    from activetouch import sim
     from activetouch.belief import BeliefConfig, ParticleBelief
     from activetouch.observations import merge_obs, voxel_downsample
-    from activetouch.registry import get_method
 
+    env, method = check_config(cfg, out_dir)  # every check before the long work (CHSEL, planning)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    method = get_method(cfg.method)
+    (out / "summary.json").unlink(missing_ok=True)  # a re-run is unfinished until its new summary is written
+    for name in FIGURES:  # figures of an earlier run in this folder are not this run's
+        (out / name).unlink(missing_ok=True)
     torch.manual_seed(cfg.seed)
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
     device = torch.device(cfg.device)
 
-    env = sim.make(cfg.task, seed=cfg.seed, observe_dT=cfg.observe_dT)
     spec, obj = env.spec, env.object
     T_max = cfg.steps if cfg.steps is not None else spec.max_steps
     bcfg = BeliefConfig(num_particles=cfg.particles, se2=spec.se2, chsel_iterations=cfg.chsel_iterations)
+    planner = method.make_planner(env, bcfg, cfg.seed, **cfg.planner)
 
     obs, info = env.reset(seed=cfg.seed)
     X = voxel_downsample(obs.features, r_free=bcfg.r_free, r_surface=bcfg.r_surface)  # X_0 (line 1)
     prior = build_prior(env, X, cfg.particles, gen, device)
     belief = ParticleBelief.from_prior(obj, prior, X, bcfg, use_chsel=cfg.use_chsel, generator=gen)  # lines 2-3
-    planner = method.make_planner(env, bcfg, cfg.seed, **cfg.planner)
+    chsel_pending = cfg.use_chsel and cfg.chsel_at_first_contact and len(X.surface) == 0
     planner.reset()
     apc_stop = cfg.beta_t * obj.diagonal
     terminate = cfg.terminate_on_convergence
@@ -171,13 +261,13 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
     t_episode = time.perf_counter()
     pbar = None
     if cfg.progress:
-        from tqdm.auto import tqdm
+        from activetouch.experiments.progress import progress
 
-        pbar = tqdm(total=T_max, desc=f"{cfg.method} on {cfg.task} (seed {cfg.seed})", unit="step")
+        pbar = progress(T_max, f"{cfg.method} on {cfg.task} (seed {cfg.seed})", unit="step")
     with StepWriter(out / "steps.csv") as writer:
-        m = _step_metrics(obj, belief, info["true_pose"], device)
-        row = {"step": 0, **m, "n_features": len(X), "n_surface": len(X.surface), "in_contact": False,
-               "resampled": False}
+        m = _step_metrics(obj, belief, info["true_pose"], device, X)
+        row = {"step": 0, **m, "n_features": len(X), "n_surface": len(X.surface), "n_free": len(X.free),
+               "in_contact": False, "resampled": False}
         writer.write(row)
         rows.append(row)
         snapshots["first"] = prev_snapshot = _snapshot(belief, X, info, planner)
@@ -186,7 +276,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
                 converged = True
                 break
             t0 = time.perf_counter()
-            u, timings = planner.next_action(belief, env.ee_state(), in_contact)  # lines 5-6
+            u, timings = planner.next_action(belief, env.ee_state(), in_contact, features=X)  # lines 5-6
             t1 = time.perf_counter()
             if t == 1:
                 snapshots["first"] = _snapshot(belief, X, info, planner)
@@ -212,15 +302,20 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
                           r_free=bcfg.r_free, r_surface=bcfg.r_surface)  # line 14
             if len(obs.features.surface) and "touch" not in contact_story and cfg.figures:  # first touch
                 contact_story.update(_touch_snapshots(belief, X, info, prev_snapshot))
+            chsel_now = chsel_pending and len(X.surface) > 0
+            if chsel_now:  # see EpisodeConfig.chsel_at_first_contact
+                belief = ParticleBelief.from_prior(obj, belief.poses, X, bcfg, use_chsel=True, generator=gen)
+                chsel_pending = False
             resampled = belief.update(X, generator=gen)  # lines 15-20
             prev_snapshot = _snapshot(belief, X, info, None) if cfg.figures else None
             if "touch" in contact_story and "after" not in contact_story:
                 contact_story["after"] = prev_snapshot
                 contact_story["resampled"] = resampled
             t3 = time.perf_counter()
-            m = _step_metrics(obj, belief, info["true_pose"], device)
-            row = {"step": t, **m, "n_features": len(X), "n_surface": len(X.surface), "in_contact": in_contact,
-                   "resampled": resampled, "plan_s": t1 - t0, "update_s": t3 - t2, "step_s": t2 - t1, **timings}
+            m = _step_metrics(obj, belief, info["true_pose"], device, X)
+            row = {"step": t, **m, "n_features": len(X), "n_surface": len(X.surface), "n_free": len(X.free),
+                   "in_contact": in_contact,
+                   "resampled": resampled, "chsel": chsel_now, "plan_s": t1 - t0, "update_s": t3 - t2, "step_s": t2 - t1, **timings}
             writer.write(row)
             rows.append(row)
             if pbar is not None:
@@ -245,14 +340,24 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
         "final_trans_err": rows[-1]["trans_err"], "final_rot_err_deg": rows[-1]["rot_err_deg"],
         "initial_mean_rot_err_deg": rows[0]["mean_rot_err_deg"], "final_mean_rot_err_deg": rows[-1]["mean_rot_err_deg"],
         "min_mean_rot_err_deg": min(r["mean_rot_err_deg"] for r in rows),
+        **_contact_story(rows),
         "median_plan_s": float(np.median(plan_times)) if plan_times else None,
         "wall_s": time.perf_counter() - t_episode,
         "config": asdict(cfg),
+        "platform": platform_info(),
     }
-    write_json_atomic(out / "summary.json", summary)
-    if cfg.figures:
+    if cfg.figures:  # before summary.json: a kill while plotting leaves an unfinished episode, not a figureless one
         write_figures(out, env, obj, rows, snapshots, spec, apc_stop, contact_story)
+    write_json_atomic(out / "summary.json", summary)
     return summary
+
+
+def _contact_story(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The first contact's step and the belief's weighted rotation error just before it (camera-only evidence
+    until then) and at the end, for the printout: what touching taught."""
+    t = next((int(r["step"]) for r in rows if r.get("in_contact")), None)
+    return {"first_contact_step": t,
+            "mean_rot_err_deg_before_contact": None if t is None else rows[t - 1]["mean_rot_err_deg"]}
 
 
 def _snapshot(belief, X, info, planner) -> dict[str, Any]:
@@ -302,35 +407,59 @@ def run_sweep(tasks, methods, seeds, root, base: EpisodeConfig | None = None, wo
               backend: str = "process") -> list[dict[str, Any]]:
     """Run every (task, method, seed) episode, skipping finished ones (resume), in a local process pool
     (default) or on Ray (``backend='ray'``, optional extra ``activetouch[ray]``)."""
+    from activetouch.experiments.progress import progress
+    from activetouch.experiments.records import load_summaries, settings_diff
+
     base = base or EpisodeConfig()
+    tasks, methods, seeds = list(tasks), list(methods), list(seeds)
+    for name, v in (("tasks", tasks), ("methods", methods), ("seeds", seeds)):
+        if not v:
+            raise ValueError(f"a sweep needs at least one of {name}")
+        if len(set(v)) != len(v):
+            raise ValueError(f"{name} repeats an entry: {v}")
+    if any(not isinstance(x, int) or x < 0 for x in seeds):
+        raise ValueError(f"seeds must be non-negative ints, got {seeds}")
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers!r}")
+    if backend not in ("process", "ray"):
+        raise ValueError(f"backend must be 'process' or 'ray', got {backend!r}")
+    check_output_dir(root)
+    for task in tasks:  # names, device, particles and planner settings: checked before any episode starts
+        for method in methods:
+            check_config(replace(base, task=task, method=method, seed=seeds[0]))
     jobs = []
     for task in tasks:
         for method in methods:
             for seed in seeds:
                 d = episode_dir(root, task, method, seed)
-                if not is_finished(d):
-                    jobs.append((replace(base, task=task, method=method, seed=seed, progress=False), d))
+                cfg = replace(base, task=task, method=method, seed=seed, progress=False)
+                if is_finished(d):
+                    done = load_summaries([d])[0].get("config", {})
+                    diff = settings_diff(done, asdict(cfg))
+                    if diff:  # a resume never mixes runs of different settings
+                        raise ValueError(f"{d} holds an episode run with other settings ({diff}): resume with "
+                                         "the same settings or sweep into another --out folder")
+                    continue
+                jobs.append((cfg, d))
     log.info("%d episodes to run (%d already finished)", len(jobs), len(tasks) * len(methods) * len(seeds) - len(jobs))
     if jobs:
+        bar = progress(len(jobs), "episodes", unit="episode", every_s=0.0)
         if backend == "ray":
             _run_ray(jobs, workers)
         elif workers <= 1:
-            from tqdm.auto import tqdm
-
-            for c, d in tqdm(jobs, desc="episodes"):
+            for c, d in jobs:
                 run_episode(c, d)
+                bar.update(1)
         else:
             import concurrent.futures as cf
             import multiprocessing as mp
 
-            from tqdm.auto import tqdm
-
             with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
                 futs = [ex.submit(_run_job, c, d) for c, d in jobs]
-                for f in tqdm(cf.as_completed(futs), total=len(futs), desc="episodes"):
+                for f in cf.as_completed(futs):
                     f.result()
-    from activetouch.experiments.records import load_summaries
-
+                    bar.update(1)
+        bar.close()
     return load_summaries(episode_dir(root, t, m, s) for t in tasks for m in methods for s in seeds)
 
 

@@ -1,0 +1,45 @@
+"""A planner that replays a fixed action sequence: the belief driven by known actions.
+
+A closed loop is chaotic (another CPU's floating point gives another trajectory), a scripted one is not: tests
+and benchmarks that check the belief, the features and the result files use it to assert properties that hold
+on any machine. Registered as the method ``scripted`` (``EpisodeConfig(method="scripted",
+planner={"actions": [[dx, dy, dyaw], ...]})``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["ScriptedPlanner"]
+
+
+class ScriptedPlanner:
+    """Replays ``actions (T, Nu)`` in order, then zero actions.
+
+    Args:
+        actions: ``(T, Nu)`` actions in ``[-1, 1]`` (planar tasks ``Nu = 3``: ``[dx, dy, dyaw]``; 3D tasks
+            ``Nu = 4``: ``[dx, dy, dz, dyaw]``).
+        action_dim: the task's ``Nu``.
+    """
+
+    def __init__(self, actions, action_dim: int):
+        a = np.asarray(actions, dtype=np.float32)
+        if a.ndim != 2 or a.shape[1] != action_dim or len(a) == 0:
+            raise ValueError(f"scripted actions must have shape (T, {action_dim}) with T >= 1, got {a.shape}")
+        if not np.isfinite(a).all() or np.abs(a).max() > 1.0:
+            raise ValueError("scripted actions must be finite and within [-1, 1]")
+        self.actions = a
+        self.reset()
+
+    def reset(self) -> None:
+        self._t = 0
+
+    def next_action(self, belief, ee_state, in_contact: bool, features=None) -> tuple[np.ndarray, dict[str, float]]:
+        u = self.actions[self._t] if self._t < len(self.actions) else np.zeros(self.actions.shape[1], np.float32)
+        self._t += 1
+        return u.copy(), {"replanned": 0.0}
+
+    @classmethod
+    def from_env(cls, env, actions=None) -> "ScriptedPlanner":
+        if actions is None:
+            raise ValueError("method 'scripted' needs its actions: planner={'actions': [[...], ...]}")
+        return cls(actions, env.action_dim)
