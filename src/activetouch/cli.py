@@ -27,8 +27,6 @@ def _episode_args(p: argparse.ArgumentParser, method: bool = True) -> None:
     p.add_argument("--device", default="cuda" if _cuda() else "cpu", help="torch device (default: cuda if present)")
     p.add_argument("--no-chsel", action="store_true", help="skip CHSEL initialisation (faster, worse prior)")
     p.add_argument("--chsel-iterations", type=int, default=5)
-    p.add_argument("--no-chsel-at-contact", action="store_true", help="when the first view holds no surface point "
-                   "(drill, box), do not run CHSEL at the first contact (see EpisodeConfig.chsel_at_first_contact)")
     p.add_argument("--estimate-dT", action="store_true", help="estimate object motion with ObjMove (Alg. 5) "
                    "instead of observing it as the paper does in sim")
     p.add_argument("--samples", type=int, default=None, help="KMPPI samples (paper: 500)")
@@ -53,8 +51,7 @@ def _episode_config(a, task: str, seed: int):
     planner = {k: v for k, v in (("num_samples", a.samples), ("rollout_samples", a.rollouts), ("horizon", a.horizon))
                if v is not None}
     return EpisodeConfig(task=task, method=getattr(a, "method", "rumi"), seed=seed, steps=a.steps, particles=a.particles, device=a.device,
-                         use_chsel=not a.no_chsel, chsel_iterations=a.chsel_iterations,
-                         chsel_at_first_contact=not a.no_chsel_at_contact, observe_dT=not a.estimate_dT,
+                         use_chsel=not a.no_chsel, chsel_iterations=a.chsel_iterations, observe_dT=not a.estimate_dT,
                          terminate_on_convergence=not a.no_terminate, planner=planner, figures=not a.no_figures)
 
 

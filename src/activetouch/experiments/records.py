@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 STEP_COLUMNS: tuple[str, ...] = (
-    "step", "nll", "apc", "n_features", "n_surface", "n_free", "in_contact", "resampled", "chsel", "active_share",
+    "step", "nll", "apc", "n_features", "n_surface", "n_free", "in_contact", "resampled", "active_share",
     "trans_err", "rot_err_deg", "mean_rot_err_deg", "true_discrepancy", "replanned", "plan_s", "field_s", "dynamics_s", "cost_s",
     "gp_fit_s", "update_s", "step_s",
 )

@@ -36,11 +36,6 @@ class EpisodeConfig:
     device: str = "cpu"
     use_chsel: bool = True
     chsel_iterations: int = 5
-    # When X_0 holds no surface point (drill and box: the camera does not see the object) CHSEL has nothing to
-    # register at line 2; with this on it runs once at the first step whose X_t holds surface points, from the
-    # current particles (OUR ADAPTATION: the paper initialises with CHSEL "over the workspace prior" and does not
-    # say what happens without surface points).
-    chsel_at_first_contact: bool = True
     observe_dT: bool = True  # the paper observes dT in sim; False estimates it with ObjMove (Algorithm 5)
     terminate_on_convergence: bool = True
     beta_t: float = 0.03  # APC convergence ratio (Table IV)
@@ -239,7 +234,6 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
     X = voxel_downsample(obs.features, r_free=bcfg.r_free, r_surface=bcfg.r_surface)  # X_0 (line 1)
     prior = build_prior(env, X, cfg.particles, gen, device)
     belief = ParticleBelief.from_prior(obj, prior, X, bcfg, use_chsel=cfg.use_chsel, generator=gen)  # lines 2-3
-    chsel_pending = cfg.use_chsel and cfg.chsel_at_first_contact and len(X.surface) == 0
     planner.reset()
     apc_stop = cfg.beta_t * obj.diagonal
     terminate = cfg.terminate_on_convergence
@@ -302,10 +296,6 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
                           r_free=bcfg.r_free, r_surface=bcfg.r_surface)  # line 14
             if len(obs.features.surface) and "touch" not in contact_story and cfg.figures:  # first touch
                 contact_story.update(_touch_snapshots(belief, X, info, prev_snapshot))
-            chsel_now = chsel_pending and len(X.surface) > 0
-            if chsel_now:  # see EpisodeConfig.chsel_at_first_contact
-                belief = ParticleBelief.from_prior(obj, belief.poses, X, bcfg, use_chsel=True, generator=gen)
-                chsel_pending = False
             resampled = belief.update(X, generator=gen)  # lines 15-20
             prev_snapshot = _snapshot(belief, X, info, None) if cfg.figures else None
             if "touch" in contact_story and "after" not in contact_story:
@@ -315,7 +305,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
             m = _step_metrics(obj, belief, info["true_pose"], device, X)
             row = {"step": t, **m, "n_features": len(X), "n_surface": len(X.surface), "n_free": len(X.free),
                    "in_contact": in_contact,
-                   "resampled": resampled, "chsel": chsel_now, "plan_s": t1 - t0, "update_s": t3 - t2, "step_s": t2 - t1, **timings}
+                   "resampled": resampled, "plan_s": t1 - t0, "update_s": t3 - t2, "step_s": t2 - t1, **timings}
             writer.write(row)
             rows.append(row)
             if pbar is not None:
