@@ -25,18 +25,10 @@ from activetouch.planning import (
     gp_training_data,
 )
 
+from synthetic import paddle
+
 Z = 0.04  # planar ee height of the synthetic tasks
 SMALL = dict(num_samples=64, rollout_samples=2, warmstart_iters=1)  # KMPPI kept small: these are wiring tests
-
-
-def paddle():
-    """Synthetic gripper: a 1 x 4 x 2 cm plate facing +x (h_I) and a small wrist block behind it (h only)."""
-    xs, ys, zs = torch.meshgrid(torch.tensor([0.0, 0.005, 0.01]), torch.linspace(-0.02, 0.02, 9),
-                                torch.linspace(-0.01, 0.01, 5), indexing="ij")
-    plate = torch.stack([xs, ys, zs], -1).reshape(-1, 3)
-    wrist = torch.tensor([[-0.02, 0.0, 0.0], [-0.03, 0.0, 0.0], [-0.02, 0.01, 0.0], [-0.02, -0.01, 0.0]])
-    mask = torch.cat([torch.ones(len(plate), dtype=torch.bool), torch.zeros(4, dtype=torch.bool)])
-    return torch.cat([plate, wrist]), mask
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -19,6 +19,8 @@ from activetouch.planning import (
     StochasticDynamics,
 )
 
+from synthetic import paddle
+
 BODY_OFFSET = torch.tensor([-0.012, 0.0, 0.0])  # mug body axis in the object frame (handle along +x)
 CENTRE = torch.tensor([0.40, 0.0, 0.0])
 BODY_R = 0.0466
@@ -30,16 +32,6 @@ def mug_particles(yaws):
     R = pose_from_xyz_yaw(torch.zeros(P, 3), yaws)[:, :3, :3]
     t = CENTRE - torch.einsum("pij,j->pi", R, BODY_OFFSET)
     return pose_from_xyz_yaw(t, yaws), torch.full((P,), 1.0 / P)
-
-
-def paddle():
-    """Synthetic gripper: a 1 x 4 x 2 cm plate facing +x (h_I) and a small wrist block behind it (h only)."""
-    xs, ys, zs = torch.meshgrid(torch.tensor([0.0, 0.005, 0.01]), torch.linspace(-0.02, 0.02, 9),
-                                torch.linspace(-0.01, 0.01, 5), indexing="ij")
-    plate = torch.stack([xs, ys, zs], -1).reshape(-1, 3)
-    wrist = torch.tensor([[-0.02, 0.0, 0.0], [-0.03, 0.0, 0.0], [-0.02, 0.01, 0.0], [-0.02, -0.01, 0.0]])
-    mask = torch.cat([torch.ones(len(plate), dtype=torch.bool), torch.zeros(4, dtype=torch.bool)])
-    return torch.cat([plate, wrist]), mask
 
 
 @pytest.fixture(scope="module")

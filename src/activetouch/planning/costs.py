@@ -13,7 +13,7 @@ from activetouch.geometry.voxel import VoxelGrid
 from activetouch.information.field import InformationField
 from activetouch.planning.dynamics import STATE_DIM, GripperModel
 
-__all__ = ["InformationCost", "ReachabilityCost", "RumiCost", "resample_to_grid"]
+__all__ = ["InformationCost", "ReachabilityCost", "RumiCost", "TimedTrajectoryCost", "resample_to_grid"]
 
 
 def _check_states(states: torch.Tensor) -> torch.Tensor:
@@ -184,7 +184,27 @@ class ReachabilityCost:
         return -ri / self.total  # line 4
 
 
-class RumiCost:
+class TimedTrajectoryCost:
+    """Base of the KMPPI terminal costs: ``cost(states (M, K, H, 7), actions) -> (M, K)`` (pytorch_mppi's
+    terminal_state_cost) over :meth:`evaluate` on flat batches ``(S, H, 7) -> (S,)``, accumulating the run time in
+    ``elapsed`` (wall) and ``elapsed_cpu`` (process CPU seconds) for the timing tables (RUMI Table VII)."""
+
+    elapsed: float = 0.0
+    elapsed_cpu: float = 0.0
+
+    def evaluate(self, states: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def __call__(self, states: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
+        t0, c0 = time.perf_counter(), time.process_time()
+        lead = states.shape[:-2]
+        c = self.evaluate(states.reshape(-1, *states.shape[-2:])).reshape(lead)
+        self.elapsed += time.perf_counter() - t0
+        self.elapsed_cpu += time.process_time() - c0
+        return c
+
+
+class RumiCost(TimedTrajectoryCost):
     """Eq. 31: ``C = beta_I C_I + beta_R C_R`` as a KMPPI terminal cost over whole trajectories.
 
     Callable as ``cost(states (M, K, H, 7), actions) -> (M, K)`` (pytorch_mppi's terminal_state_cost);
@@ -212,12 +232,4 @@ class RumiCost:
             c = c + self.beta_I * self.info_cost(states)
         if self.beta_R > 0:
             c = c + self.beta_R * self.reach_cost(states)
-        return c
-
-    def __call__(self, states: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
-        t0, c0 = time.perf_counter(), time.process_time()
-        lead = states.shape[:-2]
-        c = self.evaluate(states.reshape(-1, *states.shape[-2:])).reshape(lead)
-        self.elapsed += time.perf_counter() - t0
-        self.elapsed_cpu += time.process_time() - c0
         return c

@@ -38,7 +38,7 @@ from activetouch.geometry.voxel import VoxelGrid
 from activetouch.information.field import FREE, InformationField
 from activetouch.observations import Features, voxel_representatives
 from activetouch.planning.config import RumiPlannerConfig
-from activetouch.planning.costs import _check_states
+from activetouch.planning.costs import TimedTrajectoryCost, _check_states
 from activetouch.planning.dynamics import GripperModel
 from activetouch.planning.rumi import RumiPlanner
 
@@ -362,7 +362,7 @@ class GPImplicitSurface:
 
 
 # ---------------------------------------------------------------------------------------------- Eq. 37
-class GPVarianceCost:
+class GPVarianceCost(TimedTrajectoryCost):
     """Eq. 37 summed over the horizon: ``C = sum_t sum_{x in D(h_I(q_t) - d_t, r_d)} -beta^(t-1) var(x | X)``.
 
     Eq. 37 is a running cost; MPPI only uses each trajectory's total, so it is evaluated here on whole rolled-out
@@ -483,14 +483,6 @@ class GPVarianceCost:
         w = self.discount ** torch.arange(v.shape[1], device=v.device, dtype=v.dtype)  # beta^(t-1)
         return -(v * w).sum(dim=1)
 
-    def __call__(self, states: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
-        """pytorch_mppi terminal-cost callback: ``states (..., H, 7)`` -> ``(...)``."""
-        t0, c0 = time.perf_counter(), time.process_time()
-        lead = states.shape[:-2]
-        c = self.evaluate(states.reshape(-1, *states.shape[-2:])).reshape(lead)
-        self.elapsed += time.perf_counter() - t0
-        self.elapsed_cpu += time.process_time() - c0
-        return c
 
 
 # ---------------------------------------------------------------------------------------------- planner
