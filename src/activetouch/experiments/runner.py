@@ -309,8 +309,8 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
             writer.write(row)
             rows.append(row)
             if pbar is not None:
-                pbar.update(1)
                 pbar.set_postfix(nll=f"{m['nll']:.1f}", apc=f"{m['apc'] * 1000:.1f}mm", contact=int(in_contact))
+                pbar.update(1)  # after the postfix: a plain progress line prints this step's numbers
             if terminated or truncated:
                 break
     if pbar is not None:
