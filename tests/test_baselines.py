@@ -26,6 +26,7 @@ from activetouch.planning import (
 )
 
 from synthetic import paddle
+from synthetic import toy_field as info_blob_field
 
 Z = 0.04  # planar ee height of the synthetic tasks
 SMALL = dict(num_samples=64, rollout_samples=2, warmstart_iters=1)  # KMPPI kept small: these are wiring tests
@@ -341,16 +342,6 @@ def test_slide_validation(mug):
 
 
 # ---------------------------------------------------------------------------------------------- wiring
-def info_blob_field(grid, centre, sigma=0.03):
-    """All-free field with an information blob at ``centre``."""
-    pts = grid.points()
-    info = torch.exp(-((pts[:, :2] - torch.tensor(centre)) ** 2).sum(-1) / (2 * sigma**2)).reshape(grid.shape)
-    probs = torch.zeros(*grid.shape, 3)
-    probs[..., FREE] = 1.0
-    lo = grid.lower.float()
-    return InformationField(grid, probs, info, torch.zeros(*grid.shape, 3), lo, lo)
-
-
 def test_rumi_takes_features_and_is_unchanged(slab, gripper):
     def first(**kw):
         p = RumiPlanner(None, slab, gripper.points, gripper.info_mask, config=RumiPlannerConfig.info_only(**SMALL),

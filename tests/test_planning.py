@@ -9,7 +9,7 @@ import torch
 
 from activetouch import objects
 from activetouch.geometry import VoxelGrid, pose_from_xyz_yaw
-from activetouch.information import FREE, InformationField, compute_field
+from activetouch.information import compute_field
 from activetouch.planning import (
     GripperModel,
     InformationCost,
@@ -19,7 +19,7 @@ from activetouch.planning import (
     StochasticDynamics,
 )
 
-from synthetic import paddle
+from synthetic import paddle, toy_field
 
 BODY_OFFSET = torch.tensor([-0.012, 0.0, 0.0])  # mug body axis in the object frame (handle along +x)
 CENTRE = torch.tensor([0.40, 0.0, 0.0])
@@ -286,16 +286,6 @@ def test_reachability_cost_prefers_pulling_info_into_reach(field, workspace):
 
 
 # ---------------------------------------------------------------------------------------------- planner
-def toy_field(grid, centre, sigma=0.03):
-    """All-free field with an information blob at ``centre``."""
-    pts = grid.points()
-    info = torch.exp(-((pts[:, :2] - torch.tensor(centre)) ** 2).sum(-1) / (2 * sigma**2)).reshape(grid.shape)
-    probs = torch.zeros(*grid.shape, 3)
-    probs[..., FREE] = 1.0
-    lo = grid.lower.float()
-    return InformationField(grid, probs, info, torch.zeros(*grid.shape, 3), lo, lo)
-
-
 @pytest.fixture(scope="module")
 def slab_ws():
     return VoxelGrid([0.0, -0.4, Z - 0.005], [0.8, 0.4, Z + 0.005], 0.01)
