@@ -107,9 +107,9 @@ def check_config(cfg: EpisodeConfig, out_dir: str | Path | None = None):
         raise ValueError(f"particles = {cfg.particles}: CHSEL (Alg. 1 line 2) with {cfg.chsel_iterations} rounds needs "
                          f"at least {chsel_min_batch(cfg.chsel_iterations)} particles; use more or --no-chsel")
     env = sim.make(cfg.task, seed=cfg.seed, observe_dT=cfg.observe_dT)
-    BeliefConfig(num_particles=cfg.particles, se2=env.spec.se2, chsel_iterations=cfg.chsel_iterations)
+    bcfg = BeliefConfig(num_particles=cfg.particles, se2=env.spec.se2, chsel_iterations=cfg.chsel_iterations)
     try:
-        method.make_planner(env, BeliefConfig(num_particles=cfg.particles, se2=env.spec.se2), cfg.seed, **cfg.planner)
+        method.make_planner(env, bcfg, cfg.seed, **cfg.planner)
     except TypeError as e:  # an override the factory does not take
         raise ValueError(f"method {cfg.method!r} does not accept the planner settings {cfg.planner}: {e}") from None
     return env, method
@@ -344,7 +344,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path) -> dict[str, Any]:
 
 def _contact_story(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """The first contact's step and the belief's weighted rotation error just before it (camera-only evidence
-    until then) and at the end, for the printout: what touching taught."""
+    until then), for the printout of what touching taught."""
     t = next((int(r["step"]) for r in rows if r.get("in_contact")), None)
     return {"first_contact_step": t,
             "mean_rot_err_deg_before_contact": None if t is None else rows[t - 1]["mean_rot_err_deg"]}
