@@ -1,7 +1,7 @@
 """``activetouch`` command line.
 
-    activetouch tasks                          list the registered tasks
-    activetouch methods                        list the registered methods
+    activetouch tasks                          list the registered tasks (and the methods that run on each)
+    activetouch methods [--task T]             list the registered methods (which run on T, and why not)
     activetouch show mug-0 --out mug0.png      picture of a task's start
     activetouch run mug-0 --method rumi --seed 0 --out runs/mug0
     activetouch sweep --tasks mug-0 mug-1 --methods rumi info-only --seeds 10 --out runs/sweep --workers 2
@@ -151,20 +151,30 @@ def cmd_report(a) -> int:
 
 
 def cmd_tasks(a) -> int:
-    from activetouch import sim
+    from activetouch import registry
 
-    for name in sim.registered():
-        spec = sim.get_spec(name)
-        print(f"{name:10s} {spec.object_name:12s} actions={spec.action_space:6s} "
-              f"search={'SE(2)' if spec.se2 else 'SE(3)'} r_w={spec.r_w} T={spec.max_steps} nll<{spec.nll_threshold:g}")
+    for name in registry.tasks():
+        t = registry.get_task(name)
+        runs = [m for m in registry.methods() if registry.compatible(name, m)]
+        print(f"{name:12s} [{t.family}] {t.description}")
+        print(f"{'':12s}   methods: {', '.join(runs) or 'none'}")
     return 0
 
 
 def cmd_methods(a) -> int:
-    from activetouch.registry import get_method, methods
+    from activetouch import registry
 
-    for name in methods():
-        print(f"{name:12s} {get_method(name).description}")
+    if a.task is not None:
+        registry.get_task(a.task)  # ValueError naming the known tasks
+    for name in registry.methods():
+        m = registry.get_method(name)
+        if a.task is None:
+            print(f"{name:12s} [belief {m.belief}] {m.description}")
+            print(f"{'':12s}   needs: {', '.join(sorted(m.requires))}")
+            continue
+        miss = registry.missing(a.task, name)
+        status = "runs" if not miss else f"cannot run: {a.task} does not provide {', '.join(sorted(miss))}"
+        print(f"{name:12s} {status}")
     return 0
 
 
@@ -240,8 +250,10 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", default=None, help="output folder (default ROOT/report)")
     rp.set_defaults(func=cmd_report)
 
-    sub.add_parser("tasks", help="list tasks").set_defaults(func=cmd_tasks)
-    sub.add_parser("methods", help="list methods").set_defaults(func=cmd_methods)
+    sub.add_parser("tasks", help="list tasks and the methods that run on each").set_defaults(func=cmd_tasks)
+    me = sub.add_parser("methods", help="list methods and what they need; --task T: which run on T and why not")
+    me.add_argument("--task", default=None)
+    me.set_defaults(func=cmd_methods)
 
     sh = sub.add_parser("show", help="save a picture of a task's start")
     sh.add_argument("task")

@@ -2,17 +2,42 @@
 belief (Algorithm 1), the ablations and GPVR also share RUMI's KMPPI and dynamics."""
 from __future__ import annotations
 
-from activetouch.registry import register_method
+from activetouch.registry import register_belief, register_method
+
+#: What RUMI's planners need besides the belief: end-effector delta actions and a reachability map (C_R).
+RUMI_PLANNER_NEEDS = ("ee-delta-actions", "reachability")
+#: KMPPI small enough for a two-step smoke run (the contract test); the defaults are the paper's.
+QUICK_KMPPI = {"num_samples": 20, "rollout_samples": 1, "horizon": 8}
 
 
-@register_method("rumi", "RUMI: information gain C_I + reachability C_R (Eq. 31), KMPPI, stochastic dynamics f^")
+@register_belief("rumi-particles", "RUMI Algorithm 1: CHSEL-initialised SE(2)/SE(3) pose particles weighed by "
+                                   "labelled point features (Alg. 2-6)", requires=("points",))
+def make_rumi_belief(env, cfg, device):
+    from activetouch.experiments.estimators import RumiEstimator
+
+    return RumiEstimator(env, cfg, device)
+
+
+def _check_rumi_belief(cfg) -> None:
+    from activetouch.belief import chsel_min_batch
+
+    if cfg.use_chsel and cfg.particles < chsel_min_batch(cfg.chsel_iterations):
+        raise ValueError(f"particles = {cfg.particles}: CHSEL (Alg. 1 line 2) with {cfg.chsel_iterations} rounds needs "
+                         f"at least {chsel_min_batch(cfg.chsel_iterations)} particles; use more or --no-chsel")
+
+
+make_rumi_belief.check_config = _check_rumi_belief
+
+
+@register_method("rumi", "RUMI: information gain C_I + reachability C_R (Eq. 31), KMPPI, stochastic dynamics f^",
+                 requires=RUMI_PLANNER_NEEDS, quick=QUICK_KMPPI)
 def make_rumi(env, belief_config, seed, **overrides):
     from activetouch.planning.rumi import RumiPlanner
 
     return RumiPlanner.from_env(env, belief_config, seed, **overrides)
 
 
-@register_method("info-only", "RUMI ablation InfoOnly: C_R removed (beta_R = 0)")
+@register_method("info-only", "RUMI ablation InfoOnly: C_R removed (beta_R = 0)", requires=RUMI_PLANNER_NEEDS, quick=QUICK_KMPPI)
 def make_info_only(env, belief_config, seed, **overrides):
     from activetouch.planning.config import RumiPlannerConfig
     from activetouch.planning.rumi import RumiPlanner
@@ -20,7 +45,7 @@ def make_info_only(env, belief_config, seed, **overrides):
     return RumiPlanner.from_env(env, belief_config, seed, config=RumiPlannerConfig.info_only(), **overrides)
 
 
-@register_method("reach-only", "RUMI ablation ReachOnly: C_I removed (beta_I = 0)")
+@register_method("reach-only", "RUMI ablation ReachOnly: C_I removed (beta_I = 0)", requires=RUMI_PLANNER_NEEDS, quick=QUICK_KMPPI)
 def make_reach_only(env, belief_config, seed, **overrides):
     from activetouch.planning.config import RumiPlannerConfig
     from activetouch.planning.rumi import RumiPlanner
@@ -28,7 +53,8 @@ def make_reach_only(env, belief_config, seed, **overrides):
     return RumiPlanner.from_env(env, belief_config, seed, config=RumiPlannerConfig.reach_only(), **overrides)
 
 
-@register_method("scripted", "no planning: replays planner={'actions': [[...], ...]} (tests, benchmarks, replays)")
+@register_method("scripted", "no planning: replays planner={'actions': [[...], ...]} (tests, benchmarks, replays)",
+                 requires=("ee-delta-actions",), quick=lambda env: {"actions": [[0.5] * env.action_dim] * 2})
 def make_scripted(env, belief_config, seed, actions=None):
     from activetouch.planning.scripted import ScriptedPlanner
 
@@ -36,7 +62,8 @@ def make_scripted(env, belief_config, seed, actions=None):
 
 
 @register_method("gpvr", "Baseline GPVR (V-H): GP implicit surface (Matern 1.5) variance, Eq. 37 running cost, "
-                         "RUMI's KMPPI and dynamics f^")
+                         "RUMI's KMPPI and dynamics f^", requires=RUMI_PLANNER_NEEDS, quick={**QUICK_KMPPI, "warmstart_iters": 1, "fit_steps": 10,
+                                                                           "max_surface_points": 100, "max_free_points": 100})
 def make_gpvr(env, belief_config, seed, **overrides):
     from activetouch.planning.gpvr import GpvrPlanner
 
@@ -44,7 +71,7 @@ def make_gpvr(env, belief_config, seed, **overrides):
 
 
 @register_method("slide", "Baseline Slide (V-H): slide tangentially along the contact (direction drawn per run), "
-                          "else move toward the particles' centre")
+                          "else move toward the particles' centre", requires=("ee-delta-actions",))
 def make_slide(env, belief_config, seed, **overrides):
     from activetouch.planning.slide import SlidePlanner
 

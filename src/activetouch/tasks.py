@@ -1,0 +1,98 @@
+"""The built-in tasks, registered for the episode loop: RUMI's nine rummaging tasks (``sim.tasks``) and the
+touch paper's blind-grasping tasks (``sim.grasp_tasks``, when present).
+
+Each task supplies its environment, the kinds of observation and action it provides, its prior over the object
+pose and its success criterion (:class:`activetouch.registry.TaskEntry`).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from activetouch.registry import TaskEntry, register_task
+
+#: What a RUMI rummaging environment provides (``sim.RummageEnv``).
+RUMMAGE_PROVIDES = frozenset({"points", "contact", "object-motion", "ee-delta-actions", "reachability"})
+
+
+def _as_tensor(x, device) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(x), dtype=torch.float32, device=device)
+
+
+def rummage_prior(env, n: int, generator: torch.Generator, device="cpu", *, features=None, **_) -> torch.Tensor:
+    """Prior pose particles ``(P, 4, 4)`` of RUMI section V-B from the first (downsampled) features ``X_0``.
+
+    Mug tasks: the mug centre is estimated from the initially observed surface points (a least-squares circle
+    fit of their x-y positions, the mug body being a cylinder), yaw uniform. Other tasks: N(0, 0.05) in x, y
+    around the task's nominal centre, yaw uniform; SE(3) tasks (box) also draw the resting face.
+    """
+    from activetouch.belief import priors
+
+    spec, obj = env.spec, env.object
+    nominal = _as_tensor(spec.prior_center(obj.mesh.vertices), device)
+    if spec.prior_kind == "mug-centre":
+        if features is None:
+            raise ValueError(f"task {spec.name}: the mug prior needs the first observation's features")
+        surf = features.surface.positions
+        if len(surf) < 3:
+            raise ValueError(f"task {spec.name}: the mug prior needs camera surface points, got {len(surf)}")
+        centre = nominal.clone()
+        centre[:2] = _circle_centre(surf[:, :2]).to(centre)
+        return priors.mug_prior(centre, n, generator=generator, axis_offset=_body_axis(obj))
+    if not spec.se2:  # SE(3) search (box): also draw the resting face, see priors.resting_face_prior
+        # the table top is z = 0 (TaskSpec.start_pose rests the object's lowest point there)
+        return priors.resting_face_prior(nominal, obj.mesh.vertices, sigma=spec.prior_sigma, n=n, table_z=0.0,
+                                         generator=generator).to(device)
+    return priors.gaussian_yaw_prior(nominal, sigma=spec.prior_sigma, n=n, generator=generator)
+
+
+def _body_axis(obj) -> torch.Tensor:
+    """Object-frame point on a mug body's axis: the packaged mug's body spans y symmetrically and its handle
+    sticks out along +x, so the axis sits one body radius (half the y extent) in from the -x side."""
+    lo, hi = (torch.as_tensor(b, dtype=torch.float32) for b in obj.bounds)
+    radius = float(hi[1] - lo[1]) / 2.0
+    return torch.tensor([float(lo[0]) + radius, float(lo[1] + hi[1]) / 2.0, 0.0])
+
+
+def _circle_centre(xy: torch.Tensor) -> torch.Tensor:
+    """Kasa least-squares circle fit: centre ``(2,)`` of points ``(N, 2)``."""
+    xy = xy.double()
+    A = torch.cat([2 * xy, torch.ones(len(xy), 1, dtype=xy.dtype)], dim=1)
+    b = (xy**2).sum(1, keepdim=True)
+    sol = torch.linalg.lstsq(A, b).solution
+    return sol[:2, 0].float()
+
+
+def rummage_success(rows: list[dict[str, Any]], last_info: dict[str, Any], env) -> dict[str, Any]:
+    """RUMI's success (Table III): the NLL fell below the task's threshold at some step; plus the strict
+    variants of ``metrics.success_fields``."""
+    from activetouch.experiments import metrics
+
+    nlls = [r["nll"] for r in rows]
+    thr = env.spec.nll_threshold
+    return {"success": bool(min(nlls) < thr), "nll_threshold": thr,
+            **metrics.success_fields(nlls, [r["mean_rot_err_deg"] for r in rows], thr)}
+
+
+def _make_rummage(name: str):
+    def make_env(seed: int = 0, **overrides):
+        from activetouch import sim
+
+        return sim.make(name, seed=seed, **overrides)
+
+    return make_env
+
+
+def _register_rummage() -> None:
+    from activetouch.sim.tasks import TASKS
+
+    for name, spec in TASKS.items():
+        desc = (f"RUMI: {spec.object_name}, actions={spec.action_space}, search={'SE(2)' if spec.se2 else 'SE(3)'}, "
+                f"r_w={spec.r_w}, T={spec.max_steps}, success: NLL < {spec.nll_threshold:g}")
+        register_task(TaskEntry(name=name, family="rummage", description=desc, provides=RUMMAGE_PROVIDES,
+                                make_env=_make_rummage(name), prior=rummage_prior, success=rummage_success))
+
+
+_register_rummage()
