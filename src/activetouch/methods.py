@@ -76,3 +76,39 @@ def make_slide(env, belief_config, seed, **overrides):
     from activetouch.planning.slide import SlidePlanner
 
     return SlidePlanner.from_env(env, belief_config, seed, **overrides)
+
+
+# ---------------------------------------------------------------------------------------------- touch paper
+@register_belief("touch-particles", "touch paper Sec. V: SE(2) particles, Eq. 10 proximity contact model on the "
+                                    "joint-torque signal, MuJoCo rollouts, contact-aware resampling (App. B)",
+                 requires=("contact-signal", "proprioception", "physics-rollout"))
+def make_touch_belief(env, cfg, device):
+    from activetouch.experiments.estimators import TouchEstimator
+
+    return TouchEstimator(env, cfg, device)
+
+
+TOUCH_PLANNER_NEEDS = ("poke-actions", "grasp")
+#: a two-step smoke run: few candidates and waypoints
+QUICK_TOUCH = {"num_samples": 3, "waypoints": 6}
+
+
+def _touch(criterion):
+    def make(env, belief_config, seed, **overrides):
+        from activetouch.planning.touch_ig import TouchIGPlanner, TouchPlannerConfig
+
+        return TouchIGPlanner.from_env(env, belief_config, seed, config=TouchPlannerConfig(criterion=criterion),
+                                       **overrides)
+
+    return make
+
+
+register_method("touch-ig", "touch paper: expected information gain (Alg. 1, shared-support entropy Eq. 5) over "
+                            "20 spline pokes, grasp at P(success) >= 0.8 or after 15 pokes",
+                belief="touch-particles", requires=TOUCH_PLANNER_NEEDS, quick=QUICK_TOUCH)(_touch("ig"))
+register_method("touch-uninformed", "touch paper baseline Uninformed (VI-A-b): a random spline poke, no "
+                                    "information metric", belief="touch-particles", requires=TOUCH_PLANNER_NEEDS,
+                quick=QUICK_TOUCH)(_touch("uninformed"))
+register_method("touch-max-contact", "touch paper baseline MaxContact (VI-A-b): the poke contacting the most "
+                                     "particles", belief="touch-particles", requires=TOUCH_PLANNER_NEEDS,
+                quick=QUICK_TOUCH)(_touch("max-contact"))

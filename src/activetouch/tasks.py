@@ -96,3 +96,53 @@ def _register_rummage() -> None:
 
 
 _register_rummage()
+
+
+#: What a blind-grasping environment provides (``sim.grasp_env.GraspEnv``).
+GRASP_PROVIDES = frozenset({"contact", "contact-signal", "proprioception", "physics-rollout", "poke-actions",
+                            "grasp"})
+
+
+def grasp_prior(env, n: int, generator: torch.Generator, device="cpu", *, info=None, config=None, **_) -> torch.Tensor:
+    """App. D-c: ``n`` poses ``(n, 4, 4)`` from the two-component Gaussian mixture around the task's two mode
+    means (``info["prior_means"]``), sigma_pos = 0.06 m, sigma_yaw = 0.5 rad (the belief config's values)."""
+    from activetouch.belief.contact_model import se2_to_pose
+    from activetouch.belief.touch_filter import TouchFilterConfig, gmm_prior
+
+    if info is None or "prior_means" not in info:
+        raise ValueError("the grasp tasks' prior needs info['prior_means'] from env.reset()")
+    cfg = config or TouchFilterConfig()
+    states = gmm_prior(torch.as_tensor(np.asarray(info["prior_means"]), dtype=torch.float64), n,
+                       sigma_pos=cfg.prior_sigma_pos, sigma_yaw=cfg.prior_sigma_yaw, generator=generator)
+    return se2_to_pose(states, z=cfg.table_height).to(device=device, dtype=torch.float32)
+
+
+def grasp_success(rows: list[dict[str, Any]], last_info: dict[str, Any], env) -> dict[str, Any]:
+    """Touch paper Table I: success = the executed grasp lifted the box; ``iterations`` = localisation actions
+    (pokes) before the grasp."""
+    pokes = sum(1 for r in rows[1:] if r.get("n_waypoints", 0))
+    grasped = "grasp_success" in last_info
+    return {"success": bool(last_info.get("grasp_success", False)), "grasped": grasped, "iterations": pokes,
+            "grasp_p_at_grasp": rows[-1].get("grasp_p") if grasped else None}
+
+
+def _make_grasp(name: str):
+    def make_env(seed: int = 0, **overrides):
+        from activetouch.sim.grasp_env import make_grasp_env
+
+        return make_grasp_env(name, seed=seed, **overrides)
+
+    return make_env
+
+
+def _register_grasp() -> None:
+    from activetouch.sim.grasp_tasks import GRASP_TASKS
+
+    for name, spec in GRASP_TASKS.items():
+        desc = (f"touch-only: {spec.object_name} on a table, no camera, SE(2) belief, prior modes "
+                f"{spec.mode_separation:g} m apart, <= {spec.max_actions} pokes then a grasp; success: lifted")
+        register_task(TaskEntry(name=name, family="grasp", description=desc, provides=GRASP_PROVIDES,
+                                make_env=_make_grasp(name), prior=grasp_prior, success=grasp_success))
+
+
+_register_grasp()

@@ -9,8 +9,16 @@
 * :mod:`.objmove` - ObjMove (Algorithm 5) and its frame algebra.
 * :mod:`.priors` - mug and Gaussian-position/uniform-yaw priors.
 * :mod:`.chsel_init` - CHSEL quality-diversity initialisation (Algorithm 1 line 2).
+
+The touch paper's SE(2) contact filter (Sec. V):
+
+* :mod:`.contact_model` - the proximity contact model (Eq. 10) and the binary one of its ref. [3], the
+  whole-robot / object distance, SE(2) <-> pose helpers.
+* :mod:`.touch_filter` - ``TouchBelief`` (re-weighing, contact-aware resampling App. B) and the GMM prior (D-c).
 """
 from . import priors
+from .contact_model import ContactModelConfig, contact_likelihood, robot_object_distance, se2_to_pose, pose_to_se2
+from .touch_filter import TouchBelief, TouchFilterConfig, gmm_prior
 from .config import MIN_PARTICLES, BeliefConfig, chsel_min_batch
 from .discrepancy import discrepancy, discrepancy_and_objective, optimisation_objective, point_costs
 from .particle_filter import ParticleBelief, boltzmann_weights
@@ -18,6 +26,14 @@ from .priors import gaussian_yaw_prior, mug_prior, resting_face_prior
 from .resample import systematic_resample
 
 __all__ = [
+    "ContactModelConfig",
+    "TouchBelief",
+    "TouchFilterConfig",
+    "contact_likelihood",
+    "gmm_prior",
+    "pose_to_se2",
+    "robot_object_distance",
+    "se2_to_pose",
     "BeliefConfig",
     "MIN_PARTICLES",
     "chsel_min_batch",

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import logging
 import math
+import time
+from dataclasses import fields
 from typing import Any, Protocol
 
 import numpy as np
@@ -99,8 +101,20 @@ class RumiEstimator:
 
         self.env, self.cfg, self.device = env, cfg, torch.device(device)
         self.obj = env.object
-        self.config = BeliefConfig(num_particles=cfg.particles, se2=env.spec.se2,
-                                   chsel_iterations=cfg.chsel_iterations)
+        fixed = {"num_particles", "se2", "chsel_iterations"}
+        bad = sorted(set(cfg.belief) & fixed)
+        if bad:
+            raise ValueError(f"belief overrides {bad} are set by the episode (--particles, the task, "
+                             "--chsel-iterations), not by belief=")
+        known = {f.name for f in fields(BeliefConfig)}
+        unknown = sorted(set(cfg.belief) - known)
+        if unknown:
+            raise ValueError(f"unknown belief settings {unknown} for rumi-particles; known: {', '.join(sorted(known - fixed))}")
+        try:
+            self.config = BeliefConfig(num_particles=cfg.particles, se2=env.spec.se2,
+                                       chsel_iterations=cfg.chsel_iterations, **cfg.belief)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"belief settings {cfg.belief}: {e}") from None
         self.belief = None
         self.features = None
         self.apc_stop = cfg.beta_t * self.obj.diagonal
@@ -226,3 +240,118 @@ class RumiEstimator:
             paths.append(plots.belief_figure(out / "contact.png", obj, panels, zoom=0.08,
                                              title=f"{task_name}: particles coloured by weight around the first contact"))
         return paths
+
+
+class TouchEstimator:
+    """The touch paper's belief (Sec. V): SE(2) particles re-weighed by the binary joint-torque contact signal with
+    the proximity model of Eq. 10, predicted by MuJoCo rollouts of the executed poke, contact-aware resampling
+    (App. B); prior: the task's two-component Gaussian mixture (App. D-c)."""
+
+    FIGURES = ("particles.png", "entropy.png")
+    #: steps.csv columns beyond RUMI's
+    COLUMNS = ("xy_err", "yaw_err_deg", "weight_entropy", "log_support_volume", "entropy", "grasp_p", "expected_ig",
+               "t_star", "weight_term", "spatial_term", "contacted_particles", "n_waypoints", "n_contacts", "stopped_early", "resample_kind",
+               "n_replaced", "ess_ratio", "grasp_s", "sample_s", "ig_s", "rollout_s", "distance_s", "belief_rollout_s", "filter_s")
+
+    def __init__(self, env, cfg, device):
+        from activetouch.belief.contact_model import ContactModelConfig
+        from activetouch.belief.touch_filter import TouchFilterConfig
+
+        self.env, self.cfg, self.device = env, cfg, torch.device(device)
+        self.obj = env.object
+        overrides = dict(cfg.belief)
+        contact = {k[len("contact_"):]: overrides.pop(k) for k in list(overrides) if k.startswith("contact_")}
+        if "num_particles" in overrides:
+            raise ValueError("the particle count is set by --particles, not by belief=")
+        try:
+            self.config = TouchFilterConfig(num_particles=cfg.particles, contact=ContactModelConfig(**contact),
+                                            **overrides)
+        except TypeError as e:
+            raise ValueError(f"belief settings {cfg.belief}: {e} (TouchFilterConfig fields; contact model fields "
+                             "as contact_<name>, e.g. contact_kind=binary)") from None
+        self.belief = None
+        self.features = None
+        self.radius = None
+        self.history: list[dict[str, Any]] = []  # per step: states, weights, robot path, contacts (figures)
+
+    @property
+    def poses(self) -> torch.Tensor:
+        return self.belief.poses
+
+    @property
+    def weights(self) -> torch.Tensor:
+        return self.belief.weights
+
+    def initialise(self, task, obs, info, generator) -> dict[str, Any]:
+        from activetouch.belief.contact_model import pose_to_se2
+        from activetouch.belief.touch_filter import TouchBelief
+
+        prior = task.prior(self.env, self.cfg.particles, generator, self.device, obs=obs, info=info,
+                           config=self.config)
+        states = pose_to_se2(prior).double()
+        self.belief = TouchBelief.from_prior(self.obj, states, self.config)
+        lo, hi = (np.asarray(b, dtype=np.float64) for b in self.obj.bounds.numpy())
+        self.radius = float(np.hypot(*(hi[:2] - lo[:2])) / 2)
+        self._record(obs, None)
+        return {"n_waypoints": 0, "n_contacts": 0}
+
+    def observe(self, obs, info, ee_before, generator) -> dict[str, Any]:
+        from activetouch.sim.grasp_env import TouchObservation
+
+        if not isinstance(obs, TouchObservation) or obs.num_waypoints == 0:  # the grasp ends the episode
+            self._record(None, info)
+            return {"resampled": False, "n_waypoints": 0, "n_contacts": 0}
+        t0 = time.perf_counter()
+        traj = self.env.rollout(self.belief.states, obs)  # (P, K', 3) MuJoCo rollouts of the executed poke
+        t1 = time.perf_counter()
+        from activetouch.planning.touch_ig import near_robot_points
+
+        # the whole robot at each waypoint (only points that can come near a particle: the others are far)
+        pts = near_robot_points(self.obj, self.env.robot_points(obs.q[1:]), traj)  # (K', M', 3)
+        diag = self.belief.update(torch.as_tensor(obs.z), pts, traj.to(self.belief.states), generator=generator)
+        t2 = time.perf_counter()
+        self._record(obs, info)
+        return {"resampled": diag.get("resampled") is not None, "resample_kind": diag.get("resampled") or "",
+                "n_replaced": int(diag.get("n_replaced", 0)), "ess_ratio": float(diag.get("ess_ratio", float("nan"))),
+                "n_waypoints": obs.num_waypoints, "n_contacts": int(np.asarray(obs.z).sum()),
+                "stopped_early": bool(obs.stopped_early), "belief_rollout_s": t1 - t0, "filter_s": t2 - t1}
+
+    def _record(self, obs, info) -> None:
+        ee = None if obs is None or obs.num_waypoints == 0 else np.asarray(obs.ee)
+        z = None if obs is None or obs.num_waypoints == 0 else np.asarray(obs.z, dtype=bool)
+        self.history.append({"states": self.belief.states.detach().cpu().numpy().copy(),
+                             "weights": self.belief.weights.detach().cpu().numpy().copy(), "ee": ee, "z": z})
+
+    def metrics(self, info) -> dict[str, float]:
+        from activetouch.information import entropy
+
+        s, w = self.belief.states.detach().double().cpu(), self.belief.weights.detach().double().cpu()
+        m = pose_metrics(self.obj, self.poses, self.weights, info["true_pose"])
+        true = np.asarray(info["true_state"], dtype=np.float64)
+        best = s[int(torch.argmax(w))].numpy()
+        dyaw = (best[2] - true[2] + math.pi) % (2 * math.pi) - math.pi
+        h_w = float(entropy.weight_entropy(w))
+        h_v = float(entropy.log_support_volume(s, rho=min(5, len(w) - 1), scale=entropy.se2_scale(self.radius),
+                                               periodic=entropy.SE2_PERIODIC)) if len(w) > 1 else float("nan")
+        return {**m, "xy_err": float(np.hypot(*(best[:2] - true[:2]))), "yaw_err_deg": abs(math.degrees(dyaw)),
+                "weight_entropy": h_w, "log_support_volume": h_v, "entropy": h_w + h_v}
+
+    def converged(self) -> bool:
+        return False  # the planner ends the episode with a grasp (App. D-d, e)
+
+    def summary(self) -> dict[str, Any]:
+        return {}
+
+    def snapshot(self, info, planner=None) -> dict[str, Any]:
+        return {}
+
+    def first_snapshot(self, info, planner=None) -> None:
+        return None
+
+    def write_figures(self, out, rows, snapshots, task_name: str, threshold: float | None) -> list:
+        from activetouch.experiments import touch_plots
+
+        true = np.asarray(self.env.true_state(), dtype=np.float64)
+        return [touch_plots.particles_figure(out / "particles.png", self.obj, self.history, true,
+                                             title=f"{task_name}: particles (position + heading) and the robot's pokes"),
+                touch_plots.entropy_figure(out / "entropy.png", rows, title=f"{task_name}: entropy and expected IG")]

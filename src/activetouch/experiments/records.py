@@ -100,6 +100,9 @@ def is_finished(episode_dir: str | os.PathLike) -> bool:
 
 #: Config fields that name an episode inside a sweep (or only change what is printed/plotted), not its settings.
 RUN_FIELDS: tuple[str, ...] = ("task", "method", "seed", "progress", "figures")
+#: Config fields added after episodes were run whose empty value means "the defaults": an episode run before the
+#: field existed has the same settings as one that leaves it empty.
+EMPTY_IS_UNSET: tuple[str, ...] = ("belief",)
 
 
 def settings_of(config: dict[str, Any]) -> dict[str, Any]:
@@ -109,7 +112,8 @@ def settings_of(config: dict[str, Any]) -> dict[str, Any]:
     """
     if not isinstance(config, dict):
         raise ValueError(f"an episode config must be a dict, got {type(config).__name__}")
-    return {k: v for k, v in sorted(config.items()) if k not in RUN_FIELDS}
+    return {k: v for k, v in sorted(config.items())
+            if k not in RUN_FIELDS and not (k in EMPTY_IS_UNSET and v in ({}, None))}
 
 
 def settings_key(config: dict[str, Any]) -> str:

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from activetouch.experiments import metrics
-from activetouch.experiments.records import StepWriter, is_finished, read_steps, write_json_atomic
+from activetouch.experiments.records import STEP_COLUMNS, StepWriter, is_finished, read_steps, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +44,7 @@ class EpisodeConfig:
     motion_tol_m: float = 5e-4
     motion_tol_rad: float = 0.01
     planner: dict[str, Any] = field(default_factory=dict)  # overrides of the planner config
+    belief: dict[str, Any] = field(default_factory=dict)  # overrides of the belief config (BeliefConfig fields, ...)
     figures: bool = True
     progress: bool = True
 
@@ -168,7 +169,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
     gen = torch.Generator(device="cpu").manual_seed(cfg.seed)
     device = torch.device(cfg.device)
 
-    T_max = cfg.steps if cfg.steps is not None else env.spec.max_steps
+    T_max = cfg.steps if cfg.steps is not None else _max_steps(env)
     est = get_belief(method.belief).make(env, cfg, device)
     planner = method.make_planner(env, est.config, cfg.seed, **cfg.planner)
 
@@ -186,7 +187,8 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
         from activetouch.experiments.progress import progress
 
         pbar = progress(T_max, f"{cfg.method} on {cfg.task} (seed {cfg.seed})", unit="step")
-    with StepWriter(out / "steps.csv") as writer:
+    columns = STEP_COLUMNS + tuple(c for c in getattr(est, "COLUMNS", ()) if c not in STEP_COLUMNS)
+    with StepWriter(out / "steps.csv", columns) as writer:
         m = est.metrics(info)
         row = {"step": 0, **m, **counts, "in_contact": False, "resampled": False}
         writer.write(row)
@@ -204,9 +206,9 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
             t1 = time.perf_counter()
             if t == 1:
                 snapshots["first"] = est.snapshot(info, planner)
-            ee_before = env.ee_pose()
+            ee_before = env.ee_pose() if hasattr(env, "ee_pose") else None
             obs, _, terminated, truncated, info = env.step(u)  # lines 7-9
-            in_contact = bool(obs.in_contact)
+            in_contact = _in_contact(obs)
             t2 = time.perf_counter()
             fields = est.observe(obs, info, ee_before, gen)  # lines 10-20
             t3 = time.perf_counter()
@@ -250,6 +252,20 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
         est.write_figures(out, rows, snapshots, cfg.task, success.get("nll_threshold"))
     write_json_atomic(out / "summary.json", summary)
     return summary
+
+
+def _max_steps(env) -> int:
+    """The task's step budget T: ``env.max_steps`` when the env defines it (grasp tasks: pokes + the grasp), else
+    its spec's (RUMI: 40)."""
+    return int(getattr(env, "max_steps", None) or env.spec.max_steps)
+
+
+def _in_contact(obs) -> bool:
+    """The step's contact flag: ``obs.in_contact``, or any contact sample ``obs.z`` (touch observations)."""
+    if hasattr(obs, "in_contact"):
+        return bool(obs.in_contact)
+    z = getattr(obs, "z", None)
+    return bool(np.asarray(z).any()) if z is not None else False
 
 
 def _progress_fields(m: dict[str, float], in_contact: bool) -> dict[str, str]:
