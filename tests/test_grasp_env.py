@@ -110,26 +110,27 @@ def test_poke_down_onto_box_contacts_and_stops(env):
     x = info["true_state"]
     W = np.array([[x[0], x[1], TOP + 0.08, 0.0], [x[0], x[1], TOP + 0.03, 0.0], [x[0], x[1], TOP - 0.03, 0.0]])
     obs, reward, term, trunc, info = env.step(PokeAction(W))
-    assert obs.stopped_early and obs.z[-1] and obs.contact_force > env.spec.guard_force
-    assert obs.num_waypoints == 3 and not obs.z[:2].any()
-    assert obs.true_contact_samples[obs.z_period[-1]]
+    # a guarded stop adds an observation: the trigger (z = 1) and the end of the hold (still pressing the lid)
+    assert obs.stopped_early and obs.z[-2] and obs.contact_force > env.spec.guard_force
+    assert obs.num_waypoints == 4 and not obs.z[:2].any() and obs.z[-1]
+    assert obs.true_contact_samples[obs.z_period[-2]] and obs.z_period[-1] - obs.z_period[-2] == env.spec.stop_hold
     assert obs.ee[-1, 2] > TOP - 0.01  # stopped on the lid, not through it
-    assert obs.q.shape == (4, 7) and obs.ee.shape == (4, 4) and obs.tau_norm.shape == (3,)
+    assert obs.q.shape == (5, 7) and obs.ee.shape == (5, 4) and obs.tau_norm.shape == (4,)
     assert (reward, term, trunc) == (0.0, False, False)
     # the arm stopped on the lid: the next poke can move away (up), and stops again if it presses down
     up = np.array([[x[0], x[1], TOP + 0.10, 0.0]])
     obs2, *_ = env.step(PokeAction(up))
     assert not obs2.stopped_early and abs(obs2.ee[-1, 2] - (TOP + 0.10)) < 5e-3
     obs3, *_ = env.step(PokeAction(np.array([[x[0], x[1], TOP - 0.03, 0.0], [x[0], x[1], TOP + 0.1, 0.0]])))
-    assert obs3.stopped_early and obs3.num_waypoints == 1 and obs3.z[0]
+    assert obs3.stopped_early and obs3.num_waypoints == 2 and obs3.z[0]
 
 
 def test_side_poke_into_box_contacts_and_stops(env):
     _, info = env.reset(seed=1)
     x = info["true_state"]
     obs, *_, info = env.step(PokeAction(side_poke(x)))
-    assert obs.stopped_early and obs.z[-1]
-    assert obs.num_waypoints < len(side_poke(x))
+    assert obs.stopped_early and obs.z[:-1].any()  # the trigger; the box may have slid off by the hold's end
+    assert obs.num_waypoints <= len(side_poke(x))
     moved = np.linalg.norm(info["object_states"][-1, :2] - x[:2])
     assert moved < 0.02  # the guarded stop ends the push early
 

@@ -8,7 +8,8 @@
     activetouch table runs/sweep               results next to the paper's Tables V/VI
     activetouch report runs/sweep              Tables V, VI, VII as CSV + Markdown and the Fig. 16 NLL curves
     activetouch demo                           RUMI on mug-2 with figures (the README's demo)
-    activetouch bench {belief,step,planning,all}
+    activetouch bench {belief,step,planning,touch-ig,grasp-env,touch-ablation,all}
+    activetouch run grasp-box-0 --method touch-ig   the touch paper: poke, localise, grasp
 """
 from __future__ import annotations
 
@@ -174,7 +175,15 @@ def cmd_table(a) -> int:
     settings = check_same_settings(summaries)
     print(f"{len(summaries)} episodes, settings {settings_key(summaries[0]['config'])}: "
           + ", ".join(f"{k}={v}" for k, v in settings.items()))
-    print(markdown_table(summaries))
+    from activetouch.experiments.touch_tables import is_grasp_summary, table_i_markdown
+
+    grasp = [s for s in summaries if is_grasp_summary(s)]
+    rumi = [s for s in summaries if not is_grasp_summary(s)]
+    if rumi:
+        print(markdown_table(rumi))
+    if grasp:
+        print("\nTouch-only localisation, Table I (grasp success; the paper's numbers are real-robot runs):")
+        print(table_i_markdown(grasp))
     return 0
 
 
@@ -226,6 +235,10 @@ def cmd_show(a) -> int:
     return 0
 
 
+#: ``activetouch bench NAME`` runs ``benchmarks/bench_NAME.py`` (hyphens for underscores)
+BENCHMARKS = ("belief", "step", "planning", "touch-ig", "grasp-env", "touch-ablation")
+
+
 def _repo_benchmarks() -> Path:
     for base in (Path.cwd(), Path(__file__).resolve().parents[2]):
         if (base / "benchmarks").is_dir():
@@ -235,9 +248,9 @@ def _repo_benchmarks() -> Path:
 
 def cmd_bench(a) -> int:
     bdir = _repo_benchmarks()
-    names = ["belief", "step", "planning"] if a.which == "all" else [a.which]
+    names = list(BENCHMARKS) if a.which == "all" else [a.which]
     for n in names:
-        script = bdir / f"bench_{n}.py"
+        script = bdir / f"bench_{n.replace('-', '_')}.py"
         if not script.exists():
             print(f"missing {script}", file=sys.stderr)
             return 1
@@ -299,7 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
     sh.set_defaults(func=cmd_show)
 
     b = sub.add_parser("bench", help="run a benchmark script from benchmarks/")
-    b.add_argument("which", choices=["belief", "step", "planning", "all"])
+    b.add_argument("which", choices=[*BENCHMARKS, "all"])
     b.add_argument("args", nargs=argparse.REMAINDER)
     b.set_defaults(func=cmd_bench)
     return p

@@ -112,3 +112,17 @@ register_method("touch-uninformed", "touch paper baseline Uninformed (VI-A-b): a
 register_method("touch-max-contact", "touch paper baseline MaxContact (VI-A-b): the poke contacting the most "
                                      "particles", belief="touch-particles", requires=TOUCH_PLANNER_NEEDS,
                 quick=QUICK_TOUCH)(_touch("max-contact"))
+
+
+def _quick_pokes(env):
+    """Two pokes from the home pose toward the middle of the table (a smoke run)."""
+    return {"pokes": [[[0.30, 0.0, 0.10, 0.0], [0.38, 0.0, 0.08, 0.0]], [[0.30, -0.1, 0.10, 0.0]]]}
+
+
+@register_method("scripted-poke", "no planning: replays planner={'pokes': [[[x, y, z, yaw], ...], ...]} then grasps "
+                                  "the ML state (tests, replays)", belief="touch-particles",
+                 requires=TOUCH_PLANNER_NEEDS, quick=_quick_pokes)
+def make_scripted_poke(env, belief_config, seed, pokes=None):
+    from activetouch.planning.scripted import ScriptedPokePlanner
+
+    return ScriptedPokePlanner.from_env(env, pokes)

@@ -251,16 +251,17 @@ def _sparse_signed_distance(obj, s: torch.Tensor, rp: torch.Tensor, z: float) ->
         idx_m = band.nonzero().squeeze(1)
         pk = pts[idx_m]
         near = torch.cdist(sk[:, :2], pk[:, :2]) <= r  # (P, M_k)
-        ii, mm = near.nonzero(as_tuple=True)
-        if ii.numel() == 0:
+        rows = near.any(1).nonzero().squeeze(1)
+        if rows.numel() == 0:
             continue
-        d = pk[mm] - torch.cat([sk[ii, :2], torch.full_like(sk[ii, :1], z)], dim=1)
-        c, sn = torch.cos(sk[ii, 2]), torch.sin(sk[ii, 2])
-        x_obj = torch.stack([c * d[:, 0] + sn * d[:, 1], -sn * d[:, 0] + c * d[:, 1], d[:, 2]], dim=1)
-        with torch.no_grad():
-            v = obj.cached_sdf(x_obj.float())[0].reshape(-1).to(s.dtype)
-        col = torch.full((P,), float("inf"), dtype=s.dtype, device=s.device)
-        out[:, k] = col.scatter_reduce(0, ii, v, reduce="amin", include_self=True)
+        cols = near.index_select(0, rows).any(0).nonzero().squeeze(1)
+        # dense fused lookup (sdf_world_values' fast path, ~8x cheaper per lookup than a gathered one) over the
+        # particles and points that have any near pair; pairs outside the box come back +inf
+        poses = se2_to_pose(sk.index_select(0, rows), z)
+        v = obj.sdf_world_values(poses.float(), pk.index_select(0, cols).float(), far_positive_from=0)
+        v = torch.where(near.index_select(0, rows).index_select(1, cols), v.to(s.dtype),
+                        torch.full_like(v, float("inf"), dtype=s.dtype))
+        out[rows, k] = v.amin(1)
     return out
 
 

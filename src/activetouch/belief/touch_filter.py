@@ -88,6 +88,11 @@ class TouchFilterConfig:
       deterministic MuJoCo rollouts); set them to add Gaussian noise to every particle after each prediction.
     * ``table_height`` = 0: height of the object frame's origin (base-centred objects resting on z = 0).
     * ``active_weight`` = 1e-4: weight above which a particle counts as active (Table II).
+    * ``explain_distance`` = 5 mm: a contact that no particle lies this close to is "unexplained" and also
+      triggers contact-aware resampling (App. B's starvation case, where the weights stay near uniform and the ESS
+      test alone would never fire); 0 disables it (the ESS test only).
+    * ``contact_local_share`` = 0.5: share of the M contact candidates drawn around the robot's low part (any yaw)
+      rather than from the belief (see :meth:`TouchBelief.contact_candidates`).
     """
 
     num_particles: int = 100
@@ -111,6 +116,8 @@ class TouchFilterConfig:
     prior_components: int = 2
     table_height: float = 0.0
     active_weight: float = 1e-4
+    explain_distance: float = 0.005
+    contact_local_share: float = 0.5
 
     def __post_init__(self):
         if not isinstance(self.contact, ContactModelConfig):
@@ -123,7 +130,7 @@ class TouchFilterConfig:
         for name in ("ess_threshold", "candidate_sigma_pos", "candidate_sigma_yaw", "max_projection_step",
                      "max_penetration", "replace_below", "max_replace_fraction", "roughening_pos",
                      "roughening_yaw", "process_noise_pos", "process_noise_yaw", "prior_sigma_pos",
-                     "prior_sigma_yaw", "table_height", "active_weight"):
+                     "prior_sigma_yaw", "table_height", "active_weight", "explain_distance", "contact_local_share"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
                 raise ValueError(f"TouchFilterConfig.{name} must be a finite number, got {v!r}")
@@ -262,8 +269,9 @@ class TouchBelief:
 
         Re-weighing: ``log w_i += sum_k log P(z_k | x_{i,k})`` (the observations of one segment are independent
         given the states), then the particles move to ``states_traj[:, -1]``. Resampling is triggered when
-        ``ESS < config.ess_threshold * P``; after a contact (``z[-1]``) it is contact-aware
-        (:meth:`resample_contact`), else systematic (:meth:`resample_systematic`); either sets uniform weights.
+        ``ESS < config.ess_threshold * P`` or by a contact no particle explains; after a contact (the last ``z = 1``
+        of the segment) it is contact-aware (:meth:`resample_contact`, around the robot at that waypoint), else
+        systematic (:meth:`resample_systematic`); either sets uniform weights.
         """
         cfg = self.config
         zt = _check_z(z)
@@ -297,9 +305,17 @@ class TouchBelief:
                    replaced=torch.zeros(0, dtype=torch.long, device=self._states.device), fallback=fallback,
                    distances=d, log_likelihood=ll)
         do = cfg.resample if resample is None else bool(resample)
-        if do and ess < cfg.ess_threshold * P:
-            if bool(zt[-1]):
-                replaced = self.resample_contact(rp[-1], generator, last_distance=d[:, -1])
+        # App. B: after a contact (the segment's last z = 1: a guarded stop's trigger, possibly followed by a hold
+        # whose end no longer touches a box that slid on) resample contact-aware around the robot at that contact;
+        # also when no particle explains it (all farther than explain_distance): the weights then stay nearly
+        # uniform (ESS high) although the belief is starved exactly where the evidence is. The candidates touch
+        # the robot at the contact instant; a box that slid on during the hold (<~1 cm) is not followed.
+        hits = zt.nonzero().squeeze(1)
+        kc = int(hits[-1]) if hits.numel() else None
+        unexplained = kc is not None and not bool((d[:, kc] <= cfg.explain_distance).any())
+        if do and (ess < cfg.ess_threshold * P or (unexplained and cfg.explain_distance > 0)):
+            if kc is not None:
+                replaced = self.resample_contact(rp[kc], generator, last_distance=d[:, kc], any_weight=unexplained)
                 out.update(resampled="contact", n_replaced=int(replaced.numel()), replaced=replaced)
             else:
                 self.resample_systematic(generator)
@@ -363,6 +379,22 @@ class TouchBelief:
                               generator=generator).to(self._states.device)
         s = self._jitter(self._states.index_select(0, j), cfg.candidate_sigma_pos, cfg.candidate_sigma_yaw,
                          generator)
+        # objects without bounds (e.g. the ablation's analytic planar box) draw every candidate from the belief
+        n_local = int(round(cfg.contact_local_share * n)) if hasattr(self.obj, "bounds") else 0
+        if n_local > 0:
+            # App. B "near the current robot pose": a share of the candidates is drawn around the robot's low part
+            # (its points below the object's top: what can touch a resting object), uniform in a disc of the
+            # footprint radius, any yaw; they reach the contact manifold even when no belief particle is near it
+            top = cfg.table_height + float(self.obj.bounds[1, 2])
+            low = rp[rp[:, 2] <= top]
+            c = (low if len(low) else rp[rp[:, 2].argmin()][None])[:, :2].mean(0)
+            b = self.obj.bounds.abs().amax(0)
+            r = float(torch.hypot(b[0], b[1]))
+            u = torch.rand(n_local, 3, generator=generator, dtype=torch.float64, device=dev).to(s)
+            rad, ang = r * u[:, 0].sqrt(), 2 * math.pi * u[:, 1]
+            loc = torch.stack([c[0] + rad * torch.cos(ang), c[1] + rad * torch.sin(ang),
+                               (2 * u[:, 2] - 1) * math.pi], dim=1)
+            s = torch.cat([s[: n - n_local], loc])
         ar = torch.arange(n, device=s.device)
         for _ in range(cfg.projection_iterations):
             poses = se2_to_pose(s, cfg.table_height)
@@ -379,7 +411,7 @@ class TouchBelief:
         return s, sd
 
     def resample_contact(self, robot_points, generator: torch.Generator | None = None,
-                         last_distance: torch.Tensor | None = None) -> torch.Tensor:
+                         last_distance: torch.Tensor | None = None, any_weight: bool = False) -> torch.Tensor:
         """Contact-aware resampling (App. B, after a contact observation); returns the replaced slots ``(R,)``.
 
         1. ``M = config.contact_samples`` candidates on the contact manifold of the robot at ``robot_points
@@ -389,7 +421,8 @@ class TouchBelief:
         2. Low-weight particles (``w < config.replace_below / P``, lowest first, at most
            ``config.max_replace_fraction * P``) are paired with the best candidates; a particle is replaced when
            its candidate matches the contact better than it does (higher ``P(z=1 | x)`` at ``last_distance``
-           ``(P,)``, its distance at this waypoint; computed when None).
+           ``(P,)``, its distance at this waypoint; computed when None). ``any_weight``: every particle counts as
+           low-weight (lowest first): for a contact that no particle explains, where the weights stay near uniform.
         3. The other ``P - R`` slots are filled by systematic importance resampling of the current particles
            (duplicates roughened), as in the no-contact case.
         4. Weights are set uniform (the paper: "immediately after resampling, the share of active particles would
@@ -409,7 +442,7 @@ class TouchBelief:
         score = torch.where(sd >= -cfg.max_penetration, score, torch.zeros_like(score))
         own = contact_likelihood(one, last_distance.to(self._states)[None], smooth)[0]
         w = self.weights
-        low = (w * P < cfg.replace_below).nonzero().squeeze(1)
+        low = torch.arange(P, device=w.device) if any_weight else (w * P < cfg.replace_below).nonzero().squeeze(1)
         low = low[torch.argsort(w[low], stable=True)]
         n = min(low.numel(), cand.shape[0], int(cfg.max_replace_fraction * P))
         order = torch.argsort(score, descending=True, stable=True)[:n]

@@ -273,6 +273,7 @@ class TouchEstimator:
         self.features = None
         self.radius = None
         self.history: list[dict[str, Any]] = []  # per step: states, weights, robot path, contacts (figures)
+        self.last_obs = None  # the last poke's TouchObservation
 
     @property
     def poses(self) -> torch.Tensor:
@@ -310,6 +311,7 @@ class TouchEstimator:
         pts = near_robot_points(self.obj, self.env.robot_points(obs.q[1:]), traj)  # (K', M', 3)
         diag = self.belief.update(torch.as_tensor(obs.z), pts, traj.to(self.belief.states), generator=generator)
         t2 = time.perf_counter()
+        self.last_obs = obs
         self._record(obs, info)
         return {"resampled": diag.get("resampled") is not None, "resample_kind": diag.get("resampled") or "",
                 "n_replaced": int(diag.get("n_replaced", 0)), "ess_ratio": float(diag.get("ess_ratio", float("nan"))),

@@ -43,3 +43,33 @@ class ScriptedPlanner:
         if actions is None:
             raise ValueError("method 'scripted' needs its actions: planner={'actions': [[...], ...]}")
         return cls(actions, env.action_dim)
+
+
+class ScriptedPokePlanner:
+    """Replays fixed pokes ``[(K_i, 4) waypoints, ...]`` on a grasp task (``PokeAction``), then grasps the belief's
+    maximum-likelihood state (``GraspAction``): the touch belief driven by known actions (tests, replays)."""
+
+    def __init__(self, pokes):
+        from activetouch.sim.grasp_env import PokeAction
+
+        if not isinstance(pokes, (list, tuple)) or not pokes:
+            raise ValueError("scripted pokes must be a non-empty list of (K, 4) waypoint arrays")
+        self.pokes = [PokeAction(np.asarray(p, dtype=np.float64)).waypoints for p in pokes]
+        self.reset()
+
+    def reset(self) -> None:
+        self._t = 0
+
+    def next_action(self, belief, ee_state, in_contact: bool, features=None):
+        from activetouch.sim.grasp_env import GraspAction, PokeAction
+
+        self._t += 1
+        if self._t <= len(self.pokes):
+            return PokeAction(self.pokes[self._t - 1].copy()), {"replanned": 0.0}
+        return GraspAction(belief.best_state.detach().cpu().double().numpy()), {"replanned": 0.0}
+
+    @classmethod
+    def from_env(cls, env, pokes=None) -> "ScriptedPokePlanner":
+        if pokes is None:
+            raise ValueError("method 'scripted-poke' needs its pokes: planner={'pokes': [[[x, y, z, yaw], ...], ...]}")
+        return cls(pokes)

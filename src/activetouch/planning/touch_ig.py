@@ -65,7 +65,11 @@ class TouchPlannerConfig:
     2 mm (the robot "reaches" a particle for its hypothetical observation); ``grasp_min_weight`` = 1e-4:
     particles lighter than this are not simulated for the grasp probability (they fail; the estimate is low by
     at most P x 1e-4 = 0.01); ``predict`` = ``"rollout"`` (MuJoCo, the paper) or ``"static"`` (particles do not
-    move in the prediction: only the weight term of Eq. 9 can change; cheaper).
+    move in the prediction: only the weight term of Eq. 9 can change; cheaper). The approach direction is drawn
+    within +-90 deg of the direction from the target to the gripper, so the transit stays on the robot's side of
+    the target instead of cutting through the box; after a contact (guarded stop) every candidate first backs off
+    ``retreat_distance`` = 4 cm against the last poke's direction and ``retreat_height`` = 2 cm up: a poke
+    that starts pressing on the box would otherwise stop again at once.
     """
 
     num_samples: int = 20
@@ -80,6 +84,8 @@ class TouchPlannerConfig:
     predict: str = "rollout"
     criterion: str = "ig"
     max_tries: int = 20  # draws per candidate until its poke target is in reach
+    retreat_distance: float = 0.04
+    retreat_height: float = 0.02
 
     def __post_init__(self):
         for name in ("num_samples", "rho", "max_actions", "waypoints", "max_tries"):
@@ -129,6 +135,7 @@ class TouchIGPlanner:
         self.rng = np.random.default_rng(self.seed + 7919)
         self.actions = 0
         self.last = None  # what the last call evaluated (figures, tests)
+        self._last_target = None  # (3,) the last chosen poke's final waypoint
 
     # ------------------------------------------------------------------ sampling
     def _interior_points(self, n: int) -> np.ndarray:
@@ -142,8 +149,9 @@ class TouchIGPlanner:
             out.append(x[v.reshape(-1) < 0].numpy())
         return np.concatenate(out)[:n]
 
-    def sample_candidates(self, belief, ee_state: np.ndarray) -> list[np.ndarray]:
-        """``num_samples`` candidate waypoint arrays ``(K, 4)`` (module docstring, step 2)."""
+    def sample_candidates(self, belief, ee_state: np.ndarray, retreat: bool = False) -> list[np.ndarray]:
+        """``num_samples`` candidate waypoint arrays ``(K, 4)`` (module docstring, step 2); ``retreat``: start
+        each with the back-off via-point (after a contact)."""
         from activetouch.planning.splines import spline_waypoints
 
         cfg, env, rng = self.config, self.env, self.rng
@@ -151,6 +159,16 @@ class TouchIGPlanner:
         w = belief.weights.detach().cpu().double().numpy()
         w = w / w.sum()
         u0 = np.asarray(ee_state, dtype=np.float64).copy()
+        back = None
+        if retreat and self._last_target is not None:
+            # where the last poke wanted to go, seen from where the guarded stop left the gripper: into the contact
+            into = self._last_target - u0[:3]
+            into[2] = 0.0
+            n = np.linalg.norm(into)
+            back = u0.copy()
+            if n > 1e-6:
+                back[:3] -= cfg.retreat_distance * into / n
+            back[2] += cfg.retreat_height
         cands = []
         for _ in range(cfg.num_samples):
             for _try in range(cfg.max_tries):
@@ -160,13 +178,16 @@ class TouchIGPlanner:
                 c, s = math.cos(yaw), math.sin(yaw)
                 target = np.array([x + c * p_obj[0] - s * p_obj[1], y + s * p_obj[0] + c * p_obj[1],
                                    max(p_obj[2], cfg.min_poke_height)])
-                phi = rng.uniform(-math.pi, math.pi)
+                to_ee = math.atan2(u0[1] - target[1], u0[0] - target[0])
+                phi = to_ee + rng.uniform(-math.pi / 2, math.pi / 2)
                 approach = target + cfg.approach_distance * np.array([math.cos(phi), math.sin(phi), 0.0])
                 if env.reachable(np.stack([target, approach])).all() or _try == cfg.max_tries - 1:
                     break
             # gripper yaw: pads facing the approach direction, unwrapped next to the current yaw
             g_yaw = u0[3] + ((phi + math.pi / 2 - u0[3] + math.pi / 2) % math.pi - math.pi / 2)
             via = np.array([[*approach, g_yaw], [*target, g_yaw]])
+            if back is not None:
+                via = np.vstack([back, via])
             cands.append(spline_waypoints(u0, via, cfg.waypoints))
         return cands
 
@@ -217,7 +238,7 @@ class TouchIGPlanner:
             self.last = {"kind": "grasp", "grasp_p": p_grasp, "state": best}
             return GraspAction(best), timings
         t1 = time.perf_counter()
-        cands = self.sample_candidates(belief, ee_state)
+        cands = self.sample_candidates(belief, ee_state, retreat=bool(in_contact))
         plans = [self.env.plan_poke(c) for c in cands]
         t2 = time.perf_counter()
         ev = self._evaluate(belief, plans) if cfg.criterion != "uninformed" else None
@@ -242,6 +263,7 @@ class TouchIGPlanner:
         t4 = time.perf_counter()
         self.actions += 1
         waypoints = cands[k][:t_star]
+        self._last_target = waypoints[-1, :3].copy()
         self.last = {"kind": "poke", "candidates": cands, "chosen": k, "t_star": t_star, "gain": gain,
                      "grasp_p": p_grasp}
         timings.update(t_star=float(t_star), sample_s=t2 - t1, ig_s=t4 - t3,

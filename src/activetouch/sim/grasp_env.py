@@ -84,6 +84,8 @@ SWEEP_CELL = 0.015
 SWEEP_ALLOWANCE = 0.015
 #: Control periods per ``mujoco.rollout`` call, and the object speed (m/s, rad/s) below which it is at rest.
 ROLLOUT_CHUNK = 8
+#: Largest surface sampling distance (m) of the gripper's geoms in ``robot_points``.
+GRIPPER_SPACING = 0.004
 REST_SPEED = 1e-3
 #: A closed pad slide below this (m) holds nothing (the box's half width is 0.036 m).
 EMPTY_PAD = 0.015
@@ -169,7 +171,8 @@ class TouchObservation:
 
     Attributes:
         z: ``(K',)`` bool binary contact per executed waypoint (the signal of its last control period; for
-            the stopped waypoint, of the period that triggered the stop): the period index is ``z_period``.
+            the stopped waypoint, of the period that triggered the stop, followed by one more observation at the
+            end of the ``stop_hold`` periods, when a pushed box may have slid off): the period index is ``z_period``.
         q: ``(K'+1, 7)`` measured arm joints at the start and after each executed waypoint.
         ee: ``(K'+1, 4)`` measured ee ``[x, y, z, yaw]`` at the same instants.
         stopped_early: the guarded motion stopped the poke.
@@ -660,8 +663,17 @@ class GraspEnv:
             base = min(base, f)
             if f - base > s.guard_force:
                 stopped = True
+                # two observations: the guard's trigger (its z, the arm and the box at that period) and the end of
+                # the hold (a pushed box may slide on, off the stopped gripper): each z is paired with the robot and
+                # object states of its own instant, as the filter's Eq. 10 and the rollouts need
+                z_wp.append(zs[-1])
+                tau_wp.append(tn)
+                z_per.append(len(zs) - 1)
+                seg_end.append(len(ctrl_done) - 1)
+                q_log.append(self.current_q())
+                ee_log.append(self.ee_state())
+                obj_log.append(self.true_state())
                 hold = np.concatenate([self.current_q(), c[7:]])
-                z_stop, tau_stop, p_stop = zs[-1], tn, len(zs) - 1
                 for _ in range(s.stop_hold):
                     self._run(hold)
                     tn, f, t, _ = self._measure()
@@ -670,13 +682,14 @@ class GraspEnv:
                     taus.append(tn)
                     forces.append(f)
                     touch.append(t)
-                z_wp.append(z_stop)
-                tau_wp.append(tau_stop)
-                z_per.append(p_stop)
-                seg_end.append(len(ctrl_done) - 1)
-                q_log.append(self.current_q())
-                ee_log.append(self.ee_state())
-                obj_log.append(self.true_state())
+                if s.stop_hold > 0:
+                    z_wp.append(zs[-1])
+                    tau_wp.append(tn)
+                    z_per.append(len(zs) - 1)
+                    seg_end.append(len(ctrl_done) - 1)
+                    q_log.append(self.current_q())
+                    ee_log.append(self.ee_state())
+                    obj_log.append(self.true_state())
                 break
             if i == plan.seg_end[seg]:
                 z_wp.append(zs[-1])
@@ -755,11 +768,16 @@ class GraspEnv:
 
         m = self.model
         pts, gid = [], []
+        grip = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "gripper")
         for gi, g in enumerate(self.robot_geoms):
             t = m.geom_type[g]
             size = m.geom_size[g]
+            # the gripper touches the box far more often than the links, and Eq. 10's gamma = 1000 / m makes d's
+            # error matter at the millimetre: its geoms get at most GRIPPER_SPACING (a 1 cm grid reads a box
+            # corner against a pad face up to ~7 mm away, where the contact likelihood is already ~alpha_fp)
+            sp = min(spacing, GRIPPER_SPACING) if grip >= 0 and self._in_subtree(int(m.geom_bodyid[g]), grip) else spacing
             if t == mujoco.mjtGeom.mjGEOM_BOX:
-                p = _box_surface(size, spacing)
+                p = _box_surface(size, sp)
             else:
                 if t == mujoco.mjtGeom.mjGEOM_MESH:
                     mid = m.geom_dataid[g]
@@ -769,12 +787,12 @@ class GraspEnv:
                     tm = trimesh.creation.cylinder(radius=size[0], height=2 * size[1], sections=32)
                 else:  # pragma: no cover - the scene has boxes, cylinders and meshes only
                     raise ValueError(f"unsupported robot geom type {t}")
-                n = max(8, int(math.ceil(tm.area / spacing ** 2)))
+                n = max(8, int(math.ceil(tm.area / sp ** 2)))
                 tlog = logging.getLogger("trimesh")
                 level = tlog.level
                 tlog.setLevel(logging.ERROR)  # it logs "only got N/M samples" for the rejected ones
                 try:
-                    p, _ = trimesh.sample.sample_surface_even(tm, n, radius=0.7 * spacing, seed=0)
+                    p, _ = trimesh.sample.sample_surface_even(tm, n, radius=0.7 * sp, seed=0)
                 finally:
                     tlog.setLevel(level)
             pts.append(np.asarray(p, float))
