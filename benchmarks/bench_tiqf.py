@@ -20,7 +20,7 @@ median final ADI and median wall and process-CPU time per registration (model KD
 both; on a loaded shared machine the CPU time is the steadier number).
 
 Usage: ``python benchmarks/bench_tiqf.py [--trials 10] [--objects mug drill cracker_box] [--threads 1]
-[--pairing centroid|random] [--iteration-prior call|previous]``.
+[--pairing centroid|random] [--iteration-prior call|previous] [--tol-scale 1]``.
 """
 from __future__ import annotations
 
@@ -45,6 +45,7 @@ def _parse(argv=None):
     ap.add_argument("--icp-max-dist", type=float, default=1.0, help="Open3D ICP max correspondence distance (m)")
     ap.add_argument("--pairing", default=None, help="TIQFConfig.pairing (default: the config default)")
     ap.add_argument("--iteration-prior", default=None, help="TIQFConfig.iteration_prior")
+    ap.add_argument("--tol-scale", type=float, default=None, help="scale the paper's 0.1 mm / 0.1 deg convergence test")
     ap.add_argument("--threads", type=int, default=1, help="torch and OpenMP threads")
     ap.add_argument("--seed", type=int, default=0)
     return ap.parse_args(argv)
@@ -64,6 +65,8 @@ def main(argv=None) -> dict:
 
     torch.set_num_threads(args.threads)
     overrides = {k: v for k, v in (("pairing", args.pairing), ("iteration_prior", args.iteration_prior)) if v}
+    if args.tol_scale is not None:
+        overrides.update(tol_translation=1e-4 * args.tol_scale, tol_rotation_deg=0.1 * args.tol_scale)
     cfg = TIQFConfig(**overrides)
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     reg = o3d.pipelines.registration

@@ -34,6 +34,8 @@ def _episode_args(p: argparse.ArgumentParser, method: bool = True) -> None:
     p.add_argument("--rollouts", type=int, default=None, help="stochastic rollouts per sample (paper: 5)")
     p.add_argument("--horizon", type=int, default=None, help="KMPPI horizon H (paper: 15)")
     p.add_argument("--no-terminate", action="store_true", help="run all T steps even after APC convergence")
+    p.add_argument("--planner", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a planner setting (repeatable), e.g. --planner predict=static (the method's config)")
     p.add_argument("--belief", action="append", default=[], metavar="KEY=VALUE",
                    help="override a belief setting (repeatable), e.g. --belief sigma_R=0.1 (BeliefConfig fields)")
     p.add_argument("--no-figures", action="store_true")
@@ -53,6 +55,11 @@ def _episode_config(a, task: str, seed: int):
 
     planner = {k: v for k, v in (("num_samples", a.samples), ("rollout_samples", a.rollouts), ("horizon", a.horizon))
                if v is not None}
+    extra = _key_values(a.planner, "--planner")
+    both = sorted(set(extra) & set(planner))
+    if both:
+        raise ValueError(f"--planner sets {both}, which --samples / --rollouts / --horizon already set")
+    planner.update(extra)
     return EpisodeConfig(task=task, method=getattr(a, "method", "rumi"), seed=seed, steps=a.steps, particles=a.particles, device=a.device,
                          use_chsel=not a.no_chsel, chsel_iterations=a.chsel_iterations, observe_dT=not a.estimate_dT,
                          terminate_on_convergence=not a.no_terminate, planner=planner, figures=not a.no_figures,

@@ -93,6 +93,8 @@ class TouchFilterConfig:
       test alone would never fire); 0 disables it (the ESS test only).
     * ``contact_local_share`` = 0.5: share of the M contact candidates drawn around the robot's low part (any yaw)
       rather than from the belief (see :meth:`TouchBelief.contact_candidates`).
+    * ``mode_sigma_pos`` = 1 cm, ``mode_sigma_yaw`` = 0.1 rad: kernel of the maximum-likelihood state
+      (:attr:`TouchBelief.best_state`), about the grasp's tolerance across the pads and in yaw.
     """
 
     num_particles: int = 100
@@ -118,6 +120,8 @@ class TouchFilterConfig:
     active_weight: float = 1e-4
     explain_distance: float = 0.005
     contact_local_share: float = 0.5
+    mode_sigma_pos: float = 0.01
+    mode_sigma_yaw: float = 0.1
 
     def __post_init__(self):
         if not isinstance(self.contact, ContactModelConfig):
@@ -130,12 +134,14 @@ class TouchFilterConfig:
         for name in ("ess_threshold", "candidate_sigma_pos", "candidate_sigma_yaw", "max_projection_step",
                      "max_penetration", "replace_below", "max_replace_fraction", "roughening_pos",
                      "roughening_yaw", "process_noise_pos", "process_noise_yaw", "prior_sigma_pos",
-                     "prior_sigma_yaw", "table_height", "active_weight", "explain_distance", "contact_local_share"):
+                     "prior_sigma_yaw", "table_height", "active_weight", "explain_distance", "contact_local_share", "mode_sigma_pos", "mode_sigma_yaw"):
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
                 raise ValueError(f"TouchFilterConfig.{name} must be a finite number, got {v!r}")
             if name != "table_height" and v < 0:
                 raise ValueError(f"TouchFilterConfig.{name} must be >= 0, got {v}")
+        if self.mode_sigma_pos <= 0 or self.mode_sigma_yaw <= 0:
+            raise ValueError("mode_sigma_pos and mode_sigma_yaw must be > 0")
         if self.ess_threshold > 1 or self.max_replace_fraction > 1:
             raise ValueError("ess_threshold and max_replace_fraction must lie in [0, 1]")
 
@@ -229,8 +235,19 @@ class TouchBelief:
 
     @property
     def best_state(self) -> torch.Tensor:
-        """``(3,)`` the particle with the largest weight."""
-        return self._states[int(torch.argmax(self._log_w))]
+        """``(3,)`` the maximum-likelihood state (App. D-d): the particle at the mode of the belief's weighted
+        kernel density, ``argmax_i sum_j w_j exp(-|x_i - x_j|^2 / 2 s^2)`` with ``s`` = (``mode_sigma_pos``,
+        ``mode_sigma_yaw``). The largest-weight particle is arbitrary right after resampling (uniform weights:
+        ``argmax`` returns the first index) and a lone heavy outlier can beat a cluster; the kernel mode is the
+        particle the weighted belief around it supports most (it is the heaviest particle when the weights are
+        far from uniform and particles far apart)."""
+        cfg = self.config
+        x, w = self._states, self.weights
+        d = x[:, None, :] - x[None, :, :]
+        d[..., 2] = wrap_angle(d[..., 2])
+        q = (d[..., 0] ** 2 + d[..., 1] ** 2) / cfg.mode_sigma_pos ** 2 + d[..., 2] ** 2 / cfg.mode_sigma_yaw ** 2
+        score = (torch.exp(-0.5 * q) * w[None, :]).sum(1)
+        return x[int(torch.argmax(score))]
 
     def ess(self) -> float:
         """Effective sample size ``1 / sum w^2`` (1 .. P)."""

@@ -249,7 +249,7 @@ class TouchEstimator:
 
     FIGURES = ("particles.png", "entropy.png")
     #: steps.csv columns beyond RUMI's
-    COLUMNS = ("xy_err", "yaw_err_deg", "weight_entropy", "log_support_volume", "entropy", "grasp_p", "expected_ig",
+    COLUMNS = ("xy_err", "yaw_err_deg", "yaw_err_mod180_deg", "weight_entropy", "log_support_volume", "entropy", "grasp_p", "expected_ig",
                "t_star", "weight_term", "spatial_term", "contacted_particles", "n_waypoints", "n_contacts", "stopped_early", "resample_kind",
                "n_replaced", "ess_ratio", "grasp_s", "sample_s", "ig_s", "rollout_s", "distance_s", "belief_rollout_s", "filter_s")
 
@@ -330,12 +330,17 @@ class TouchEstimator:
         s, w = self.belief.states.detach().double().cpu(), self.belief.weights.detach().double().cpu()
         m = pose_metrics(self.obj, self.poses, self.weights, info["true_pose"])
         true = np.asarray(info["true_state"], dtype=np.float64)
-        best = s[int(torch.argmax(w))].numpy()
+        best = self.belief.best_state.detach().double().cpu().numpy()  # the ML state the grasp is planned for
         dyaw = (best[2] - true[2] + math.pi) % (2 * math.pi) - math.pi
         h_w = float(entropy.weight_entropy(w))
         h_v = float(entropy.log_support_volume(s, rho=min(5, len(w) - 1), scale=entropy.se2_scale(self.radius),
                                                periodic=entropy.SE2_PERIODIC)) if len(w) > 1 else float("nan")
-        return {**m, "xy_err": float(np.hypot(*(best[:2] - true[:2]))), "yaw_err_deg": abs(math.degrees(dyaw)),
+        sym = abs(math.degrees(dyaw))
+        # the best particle's errors are those of the ML state here (pose_metrics takes the heaviest particle)
+        m["trans_err"], m["rot_err_deg"] = float(np.hypot(*(best[:2] - true[:2]))), sym
+        return {**m, "xy_err": float(np.hypot(*(best[:2] - true[:2]))), "yaw_err_deg": sym,
+                # the cracker box looks the same after a half turn: the grasp (pads across it) does not care
+                "yaw_err_mod180_deg": min(sym, 180.0 - sym),
                 "weight_entropy": h_w, "log_support_volume": h_v, "entropy": h_w + h_v}
 
     def converged(self) -> bool:
