@@ -87,7 +87,7 @@ def main(argv=None) -> None:
     fig, axes = plt.subplots(1, len(results), figsize=(6 * len(results), 3.5), squeeze=False)
     for ax, (p, rows) in zip(axes[0], results.items()):
         keys = sorted(KEYS, key=lambda k: statistics.fmean(r[k] for r in rows))
-        ax.boxplot([[r[k] for r in rows] for k in keys], vert=False, showmeans=True, meanline=True)
+        ax.boxplot([[r[k] for r in rows] for k in keys], orientation="horizontal", showmeans=True, meanline=True)
         ax.set_yticks(range(1, len(keys) + 1), [LABELS[k] for k in keys], fontsize=8)
         ax.set_xlabel("seconds per iteration")
         ax.set_title(f"predict = {p}", fontsize=9)

@@ -232,8 +232,10 @@ def cmd_methods(a) -> int:
 
 
 def cmd_show(a) -> int:
-    from activetouch import sim
+    from activetouch import registry, sim
 
+    if registry.get_task(a.task).family != "rummage":
+        raise ValueError(f"`show` draws the RUMI tasks; {a.task} has no picture yet: run it and look at particles.png")
     env = sim.make(a.task, seed=a.seed)
     env.reset(seed=a.seed)
     out = Path(a.out or f"{a.task}.png")
