@@ -125,7 +125,7 @@ def test_selection_follows_the_criterion(env):
 
             res = entropy.expected_information_gain(belief.weights.double(), belief.states.double(),
                                                     torch.stack(ev["x"]), torch.stack(ev["p"]), torch.stack(ev["z"]),
-                                                    scale=entropy.se2_scale(planner.radius),
+                                                    scale=planner.se2_scale,
                                                     periodic=entropy.SE2_PERIODIC)
             assert planner.last["chosen"] == int(torch.argmax(res.gain))
             assert planner.last["t_star"] == int(res.t_star[planner.last["chosen"]])

@@ -230,6 +230,13 @@ def signed_robot_object_distance(obj, states, robot_points, z: float = 0.0, far_
     return out
 
 
+def footprint_radius(obj) -> float:
+    """Largest horizontal distance (m) of the object's bounds from its frame origin: no part of an upright object
+    lies farther from its particle's ``(x, y)`` (the culling bound of the distance and of the robot points)."""
+    b = obj.bounds.abs().amax(0)
+    return float(torch.hypot(b[0], b[1]))
+
+
 def _sparse_signed_distance(obj, s: torch.Tensor, rp: torch.Tensor, z: float) -> torch.Tensor:
     """:func:`signed_robot_object_distance` with ``far_inf``: per waypoint, only the (particle, point) pairs whose
     point lies within the object's cached box around that particle (footprint radius + padding horizontally,
@@ -238,8 +245,7 @@ def _sparse_signed_distance(obj, s: torch.Tensor, rp: torch.Tensor, z: float) ->
     so a dense (P, M) lookup per waypoint wastes > 90 % of its work (measured 0.5-4 s -> see bench_touch_ig)."""
     P, K = s.shape[0], rp.shape[0]
     pad = float(getattr(obj, "sdf_padding", 0.015))
-    b = obj.bounds.abs().amax(0)
-    r = float(torch.hypot(b[0], b[1])) + pad
+    r = footprint_radius(obj) + pad
     z_lo, z_hi = z + float(obj.bounds[0, 2]) - pad, z + float(obj.bounds[1, 2]) + pad
     out = torch.full((P, K), float("inf"), dtype=s.dtype, device=s.device)
     for k in range(K):

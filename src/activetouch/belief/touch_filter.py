@@ -28,6 +28,7 @@ from .contact_model import (
     check_states,
     contact_likelihood,
     contact_log_likelihood,
+    footprint_radius,
     pose_to_se2,
     robot_object_distance,
     se2_to_pose,
@@ -405,8 +406,7 @@ class TouchBelief:
             top = cfg.table_height + float(self.obj.bounds[1, 2])
             low = rp[rp[:, 2] <= top]
             c = (low if len(low) else rp[rp[:, 2].argmin()][None])[:, :2].mean(0)
-            b = self.obj.bounds.abs().amax(0)
-            r = float(torch.hypot(b[0], b[1]))
+            r = footprint_radius(self.obj)
             u = torch.rand(n_local, 3, generator=generator, dtype=torch.float64, device=dev).to(s)
             rad, ang = r * u[:, 0].sqrt(), 2 * math.pi * u[:, 1]
             loc = torch.stack([c[0] + rad * torch.cos(ang), c[1] + rad * torch.sin(ang),

@@ -271,7 +271,7 @@ class TouchEstimator:
                              "as contact_<name>, e.g. contact_kind=binary)") from None
         self.belief = None
         self.features = None
-        self.radius = None
+        self.se2_scale = None
         self.history: list[dict[str, Any]] = []  # per step: states, weights, robot path, contacts (figures)
         self.last_obs = None  # the last poke's TouchObservation
 
@@ -291,8 +291,9 @@ class TouchEstimator:
                            config=self.config)
         states = pose_to_se2(prior).double()
         self.belief = TouchBelief.from_prior(self.obj, states, self.config)
-        lo, hi = (np.asarray(b, dtype=np.float64) for b in self.obj.bounds.numpy())
-        self.radius = float(np.hypot(*(hi[:2] - lo[:2])) / 2)
+        from activetouch.information import entropy
+
+        self.se2_scale = entropy.object_se2_scale(self.obj)
         self._record(obs, None)
         return {"n_waypoints": 0, "n_contacts": 0}
 
@@ -333,7 +334,7 @@ class TouchEstimator:
         best = self.belief.best_state.detach().double().cpu().numpy()  # the ML state the grasp is planned for
         dyaw = (best[2] - true[2] + math.pi) % (2 * math.pi) - math.pi
         h_w = float(entropy.weight_entropy(w))
-        h_v = float(entropy.log_support_volume(s, rho=min(5, len(w) - 1), scale=entropy.se2_scale(self.radius),
+        h_v = float(entropy.log_support_volume(s, rho=min(5, len(w) - 1), scale=self.se2_scale,
                                                periodic=entropy.SE2_PERIODIC)) if len(w) > 1 else float("nan")
         sym = abs(math.degrees(dyaw))
         # the best particle's errors are those of the ML state here (pose_metrics takes the heaviest particle)

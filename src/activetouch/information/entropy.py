@@ -94,6 +94,15 @@ def se2_scale(length: float) -> tuple[float, float, float]:
     return (1.0, 1.0, length)
 
 
+def object_se2_scale(obj) -> tuple[float, float, float]:
+    """:func:`se2_scale` at the half diagonal of ``obj``'s x-y bounds (its footprint's radius): the scale the
+    touch planner's expected IG and the episode's entropy metric share."""
+    import numpy as np
+
+    lo, hi = (np.asarray(b, dtype=np.float64) for b in obj.bounds.detach().cpu().numpy())
+    return se2_scale(float(np.hypot(*(hi[:2] - lo[:2])) / 2))
+
+
 # ----------------------------------------------------------------------------------------------- validation
 
 def _float_tensor(x, name: str, like: torch.Tensor | None = None) -> torch.Tensor:

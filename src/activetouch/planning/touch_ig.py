@@ -40,8 +40,9 @@ def near_robot_points(obj, robot_points: torch.Tensor, states: torch.Tensor, z: 
     particle, where Eq. 10 equals alpha_fp to 4e-7 (``robot_object_distance``'s ``far_inf``), so dropping them
     changes no distance below the padding. Written here because the whole arm (~10k points) sweeps the table while
     only its lowest links and the gripper come near a box: the cull cuts the SDF lookups ~5-10x."""
-    b = obj.bounds.abs().amax(0)  # (3,) largest |x|, |y|, |z| of the object frame's bounds
-    r = float(torch.hypot(b[0], b[1])) + float(getattr(obj, "sdf_padding", 0.015))  # footprint radius + padding
+    from activetouch.belief.contact_model import footprint_radius
+
+    r = footprint_radius(obj) + float(getattr(obj, "sdf_padding", 0.015))
     xy = states[..., :2].reshape(-1, 2).to(robot_points)
     lo, hi = xy.amin(0) - r, xy.amax(0) + r
     top = float(obj.bounds[1, 2]) + z + float(getattr(obj, "sdf_padding", 0.015))
@@ -115,9 +116,9 @@ class TouchIGPlanner:
         self.config = config
         self.contact = getattr(belief_config, "contact", ContactModelConfig())
         self.seed = int(seed)
-        lo, hi = (np.asarray(b, dtype=np.float64) for b in self.obj.bounds.numpy())
-        # yaw as arc length at the footprint's radius for the shared support's neighbour metric (entropy.se2_scale)
-        self.radius = float(np.hypot(*(hi[:2] - lo[:2])) / 2)
+        from activetouch.information import entropy
+
+        self.se2_scale = entropy.object_se2_scale(self.obj)  # yaw as arc length for the shared support
         self._interior = self._interior_points(4096)
         self.reset()
 
@@ -255,7 +256,7 @@ class TouchIGPlanner:
             x0 = belief.states.detach().double().cpu()
             res = entropy.expected_information_gain(
                 w0, x0, torch.stack(ev["x"]), torch.stack(ev["p"]), torch.stack(ev["z"]), rho=cfg.rho,
-                scale=entropy.se2_scale(self.radius), periodic=entropy.SE2_PERIODIC)
+                scale=self.se2_scale, periodic=entropy.SE2_PERIODIC)
             k = int(torch.argmax(res.gain))
             t_star, gain = int(res.t_star[k]), float(res.gain[k])
             timings.update(weight_term=float(res.weight_term[k, t_star - 1]),

@@ -652,7 +652,8 @@ class GraspEnv:
         # the guard acts on the force's rise above its lowest value in this poke, so a poke that starts pressing on
         # something (after a guarded stop) can move away, and stops if it presses harder
         base = self._measure()[1]
-        for i, c in enumerate(plan.ctrl):
+
+        def period(c: np.ndarray) -> tuple[float, float]:  # run one control period and log its signals
             self._run(c)
             tn, f, t, _ = self._measure()
             ctrl_done.append(c)
@@ -660,45 +661,34 @@ class GraspEnv:
             taus.append(tn)
             forces.append(f)
             touch.append(t)
+            return tn, f
+
+        def record(tau_norm: float) -> None:  # one observation: the last period's z, the arm and the box now
+            z_wp.append(zs[-1])
+            tau_wp.append(tau_norm)
+            z_per.append(len(zs) - 1)
+            seg_end.append(len(ctrl_done) - 1)
+            q_log.append(self.current_q())
+            ee_log.append(self.ee_state())
+            obj_log.append(self.true_state())
+
+        for i, c in enumerate(plan.ctrl):
+            tn, f = period(c)
             base = min(base, f)
             if f - base > s.guard_force:
                 stopped = True
                 # two observations: the guard's trigger (its z, the arm and the box at that period) and the end of
                 # the hold (a pushed box may slide on, off the stopped gripper): each z is paired with the robot and
                 # object states of its own instant, as the filter's Eq. 10 and the rollouts need
-                z_wp.append(zs[-1])
-                tau_wp.append(tn)
-                z_per.append(len(zs) - 1)
-                seg_end.append(len(ctrl_done) - 1)
-                q_log.append(self.current_q())
-                ee_log.append(self.ee_state())
-                obj_log.append(self.true_state())
+                record(tn)
                 hold = np.concatenate([self.current_q(), c[7:]])
                 for _ in range(s.stop_hold):
-                    self._run(hold)
-                    tn, f, t, _ = self._measure()
-                    ctrl_done.append(hold)
-                    zs.append(tn > s.contact_threshold)
-                    taus.append(tn)
-                    forces.append(f)
-                    touch.append(t)
+                    tn, _ = period(hold)
                 if s.stop_hold > 0:
-                    z_wp.append(zs[-1])
-                    tau_wp.append(tn)
-                    z_per.append(len(zs) - 1)
-                    seg_end.append(len(ctrl_done) - 1)
-                    q_log.append(self.current_q())
-                    ee_log.append(self.ee_state())
-                    obj_log.append(self.true_state())
+                    record(tn)
                 break
             if i == plan.seg_end[seg]:
-                z_wp.append(zs[-1])
-                tau_wp.append(tn)
-                z_per.append(len(zs) - 1)
-                seg_end.append(len(ctrl_done) - 1)
-                q_log.append(self.current_q())
-                ee_log.append(self.ee_state())
-                obj_log.append(self.true_state())
+                record(tn)
                 seg += 1
         self._n_actions += 1
         obs = TouchObservation(

@@ -165,10 +165,6 @@ def get_grasp_spec(name: str, **overrides) -> GraspTaskSpec:
     """The ``GraspTaskSpec`` of ``name`` with dataclass fields replaced by ``overrides``."""
     if name not in GRASP_TASKS:
         raise ValueError(f"unknown grasp task {name!r}; registered: {', '.join(GRASP_TASKS)}")
-    spec = GRASP_TASKS[name]
-    if overrides:
-        bad = set(overrides) - {f.name for f in dataclasses.fields(GraspTaskSpec)}
-        if bad:
-            raise ValueError(f"unknown GraspTaskSpec fields in overrides: {sorted(bad)}")
-        spec = dataclasses.replace(spec, **overrides)
-    return spec
+    from .tasks import with_overrides
+
+    return with_overrides(GRASP_TASKS[name], overrides)

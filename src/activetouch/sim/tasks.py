@@ -176,10 +176,14 @@ def get_spec(task_id: str, **overrides) -> TaskSpec:
     """The ``TaskSpec`` of ``task_id`` with dataclass fields replaced by ``overrides``."""
     if task_id not in TASKS:
         raise ValueError(f"unknown task {task_id!r}; registered: {', '.join(TASKS)}")
-    spec = TASKS[task_id]
-    if overrides:
-        bad = set(overrides) - {f.name for f in dataclasses.fields(TaskSpec)}
-        if bad:
-            raise ValueError(f"unknown TaskSpec fields in overrides: {sorted(bad)}")
-        spec = dataclasses.replace(spec, **overrides)
-    return spec
+    return with_overrides(TASKS[task_id], overrides)
+
+
+def with_overrides(spec, overrides: dict):
+    """``spec`` (a task spec dataclass) with fields replaced by ``overrides``; ValueError naming unknown fields."""
+    if not overrides:
+        return spec
+    bad = set(overrides) - {f.name for f in dataclasses.fields(spec)}
+    if bad:
+        raise ValueError(f"unknown {type(spec).__name__} fields in overrides: {sorted(bad)}")
+    return dataclasses.replace(spec, **overrides)
