@@ -80,6 +80,21 @@ def _print_grasp_summary(s: dict, out: Path) -> None:
     print(f"  results in      {out}/ ({', '.join(files)})")
 
 
+def _print_clutter_summary(s: dict, out: Path) -> None:
+    def rate(k):
+        return "-" if s.get(k) is None else f"{100 * s[k]:.0f} %"
+
+    print(f"  ADI (Eq. 28)    {s['initial_adi_mm']:8.1f} mm at the prior -> {s['final_adi_mm']:.1f} mm at the end "
+          "(success: < 10 mm)")
+    print(f"  final error     {s['final_trans_err_mm']:8.1f} mm (Eq. 26), {s['final_rot_err_deg_tiqf']:.1f} deg (Eq. 27)")
+    print(f"  actions         {s['views']} views, {s['touches']} touches, {s['picks']} grasps ({rate('pick_success_rate')} "
+          f"succeeded), {s['pushes']} pushes ({rate('push_success_rate')})")
+    if s.get("stop_reason"):
+        print(f"  stopped         {s['stop_reason']}")
+    files = [f for f in ("steps.csv", "summary.json", "tiqf.png") if (out / f).exists()]
+    print(f"  results in      {out}/ ({', '.join(files)})")
+
+
 def _key_values(items: list[str], flag: str) -> dict:
     """``["sigma_R=0.1", "kind=binary"]`` -> ``{"sigma_R": 0.1, "kind": "binary"}`` (numbers, booleans parsed)."""
     import json
@@ -100,6 +115,9 @@ def _key_values(items: list[str], flag: str) -> dict:
 def _print_summary(s: dict, out: Path) -> None:
     ok = "SUCCESS" if s["success"] else "failure"
     print(f"\n{s['method']} on {s['task']} (seed {s['seed']}): {ok}")
+    if "final_adi_mm" in s:  # a visuo-tactile clutter task (success: final ADI < 10 mm)
+        _print_clutter_summary(s, out)
+        return
     if "nll_threshold" not in s:  # a touch-only grasp task (success: the box was lifted)
         _print_grasp_summary(s, out)
         return
@@ -149,9 +167,30 @@ def cmd_demo(a) -> int:
     return 0
 
 
+def _tables(summaries: list[dict]) -> str:
+    """The tables of a set of finished episodes, by family: RUMI's Table III, the touch paper's Table I, the
+    visuo-tactile paper's Table I."""
+    from activetouch.experiments import clutter_tables
+    from activetouch.experiments.tables import markdown_table
+    from activetouch.experiments.touch_tables import is_grasp_summary, table_i_markdown
+
+    clutter = [s for s in summaries if clutter_tables.is_clutter_summary(s)]
+    grasp = [s for s in summaries if is_grasp_summary(s)]
+    rumi = [s for s in summaries if not is_grasp_summary(s) and not clutter_tables.is_clutter_summary(s)]
+    parts = []
+    if rumi:
+        parts.append(markdown_table(rumi))
+    if grasp:
+        parts.append("Touch-only localisation, Table I (grasp success; the paper's numbers are real-robot runs):\n"
+                     + table_i_markdown(grasp))
+    if clutter:
+        parts.append("Visuo-tactile clutter, Table I (final ADI, Eq. 28, and translation error, Eq. 26; the paper's "
+                     "numbers are real-robot runs on other objects):\n" + clutter_tables.table_i_markdown(clutter))
+    return "\n\n".join(parts)
+
+
 def cmd_sweep(a) -> int:
     from activetouch.experiments.runner import EpisodeConfig, run_sweep
-    from activetouch.experiments.tables import markdown_table
 
     if a.seeds < 1:
         raise ValueError(f"--seeds must be >= 1, got {a.seeds}")
@@ -161,17 +200,14 @@ def cmd_sweep(a) -> int:
     summaries = run_sweep(a.tasks, a.methods, list(range(a.seed0, a.seed0 + a.seeds)), a.out,
                           base=EpisodeConfig(**{**base.__dict__, "figures": not a.no_figures}),
                           workers=a.workers, backend=a.backend)
-    table = markdown_table(summaries)
+    table = _tables(summaries)
     Path(a.out, "table.md").write_text(table + "\n")
     print(table)
     return 0
 
 
 def cmd_table(a) -> int:
-    from activetouch.experiments.records import load_summaries
-    from activetouch.experiments.tables import markdown_table
-
-    from activetouch.experiments.records import check_same_settings, settings_key
+    from activetouch.experiments.records import check_same_settings, load_summaries, settings_key
 
     if not Path(a.root).is_dir():
         raise ValueError(f"{a.root!r} is not a folder")
@@ -182,15 +218,7 @@ def cmd_table(a) -> int:
     settings = check_same_settings(summaries)
     print(f"{len(summaries)} episodes, settings {settings_key(summaries[0]['config'])}: "
           + ", ".join(f"{k}={v}" for k, v in settings.items()))
-    from activetouch.experiments.touch_tables import is_grasp_summary, table_i_markdown
-
-    grasp = [s for s in summaries if is_grasp_summary(s)]
-    rumi = [s for s in summaries if not is_grasp_summary(s)]
-    if rumi:
-        print(markdown_table(rumi))
-    if grasp:
-        print("\nTouch-only localisation, Table I (grasp success; the paper's numbers are real-robot runs):")
-        print(table_i_markdown(grasp))
+    print(_tables(summaries))
     return 0
 
 

@@ -126,3 +126,47 @@ def make_scripted_poke(env, belief_config, seed, pokes=None):
     from activetouch.planning.scripted import ScriptedPokePlanner
 
     return ScriptedPokePlanner.from_env(env, pokes)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The visuo-tactile clutter paper (TIQF belief; declutter graph, next best view, next best touch)
+
+@register_belief("tiqf", "visuo-tactile paper Sec. II-C: TIQF (translation-invariant quaternion filter), a Gaussian "
+                         "over the target's rotation + Eq. 6 translation from segmented depth and tactile points",
+                 requires=("target-points",))
+def make_tiqf_belief(env, cfg, device):
+    from activetouch.experiments.estimators import TiqfEstimator
+
+    return TiqfEstimator(env, cfg, device)
+
+
+#: Smoke-run budgets (the contract test): few candidates, few actions.
+QUICK_CLUTTER = {"num_views": 4, "rays_per_face": 3, "max_declutter": 1, "max_views": 1, "max_touches": 1}
+
+
+def _clutter(**phases):
+    def make(env, belief_config, seed, **overrides):
+        from activetouch.planning.clutter import ClutterPlanner
+
+        both = sorted(set(phases) & set(overrides))
+        if both:
+            raise TypeError(f"{both} are fixed by the method")
+        return ClutterPlanner.from_env(env, belief_config, seed, **phases, **overrides)
+
+    return make
+
+
+register_method("tiqf-static", "visuo-tactile paper Table I (a), static vision: one view from a random point of the "
+                               "hemisphere, TIQF", belief="tiqf", requires=("view-actions",),
+                quick=QUICK_CLUTTER)(_clutter(declutter=False, active_vision=False, touch=False))
+register_method("tiqf-active-vision", "Table I (b), active vision without decluttering: next best views (Eq. 19-24) "
+                                      "until the estimate settles (5 mm, 2 deg)", belief="tiqf",
+                requires=("view-actions",), quick=QUICK_CLUTTER)(_clutter(declutter=False, active_vision=True, touch=False))
+register_method("tiqf-declutter-vision", "Table I (c), active vision after decluttering (declutter graph, Eq. 1-2: "
+                                         "grasp or push the next object)", belief="tiqf",
+                requires=("view-actions", "segmentation", "push-actions", "pick-actions"),
+                quick=QUICK_CLUTTER)(_clutter(declutter=True, active_vision=True, touch=False))
+register_method("tiqf-visuo-tactile", "Table I (d), the paper's method: decluttering, next best views, then next best "
+                                      "touches (Eq. 25)", belief="tiqf",
+                requires=("view-actions", "segmentation", "push-actions", "pick-actions", "touch-actions",
+                          "tactile-points"), quick=QUICK_CLUTTER)(_clutter(declutter=True, active_vision=True, touch=True))

@@ -146,3 +146,68 @@ def _register_grasp() -> None:
 
 
 _register_grasp()
+
+
+#: What a dense-clutter environment provides (``sim.clutter_env.ClutterEnv``).
+CLUTTER_PROVIDES = frozenset({"target-points", "segmentation", "tactile-points", "view-actions", "touch-actions",
+                              "push-actions", "pick-actions"})
+
+
+def clutter_prior(env, n: int, generator: torch.Generator, device="cpu", *, info=None, **_) -> torch.Tensor:
+    """The clutter tasks' prior: ``n`` poses ``(n, 4, 4)``, the true target pose perturbed by N(0, sigma_t) in x, y
+    and N(0, sigma_yaw) about z (``spec.prior_sigma_t``, ``prior_sigma_yaw_deg``). It stands in for the paper's
+    starting point, the approximate target centroid of its segmentation network (Sec. II-D-1) and an upright
+    bottle of unknown heading accuracy."""
+    import math
+
+    from activetouch.geometry import make_pose
+
+    if info is None or "true_pose" not in info:
+        raise ValueError("the clutter tasks' prior needs info['true_pose'] from env.reset()")
+    s = env.spec
+    T = torch.as_tensor(np.asarray(info["true_pose"]), dtype=torch.float64)
+    dxy = torch.randn(n, 2, generator=generator, dtype=torch.float64) * s.prior_sigma_t
+    dyaw = torch.randn(n, generator=generator, dtype=torch.float64) * math.radians(s.prior_sigma_yaw_deg)
+    c, si = torch.cos(dyaw), torch.sin(dyaw)
+    Rz = torch.zeros(n, 3, 3, dtype=torch.float64)
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -si, si, c, 1.0
+    t = T[:3, 3].expand(n, 3).clone()
+    t[:, :2] += dxy
+    return make_pose(Rz @ T[:3, :3], t).to(device=device, dtype=torch.float32)
+
+
+def clutter_success(rows: list[dict[str, Any]], last_info: dict[str, Any], env) -> dict[str, Any]:
+    """Visuo-tactile paper's metrics (Eq. 26-28) of the final estimate, the action counts and the decluttering's
+    grasp / push success rates (Sec. III-B). ``success``: final ADI below 10 mm (the paper's "< 1 cm" of Fig. 6)."""
+    last = rows[-1]
+    acts = [r.get("action") for r in rows[1:]]
+    picks = [bool(r.get("action_success")) for r in rows[1:] if r.get("action") == "pick"]
+    pushes = [bool(r.get("action_success")) for r in rows[1:] if r.get("action") == "push"]
+    return {"success": bool(last["adi_mm"] < 10.0), "final_adi_mm": last["adi_mm"],
+            "final_trans_err_mm": last["trans_err_mm"], "final_rot_err_deg_tiqf": last["rot_err_deg"],
+            "initial_adi_mm": rows[0]["adi_mm"],
+            "views": acts.count("view"), "touches": acts.count("touch"), "pushes": len(pushes), "picks": len(picks),
+            "pick_success_rate": (sum(picks) / len(picks)) if picks else None,
+            "push_success_rate": (sum(pushes) / len(pushes)) if pushes else None,
+            "stop_reason": last_info.get("stop_reason")}
+
+
+def _make_clutter(name: str):
+    def make_env(seed: int = 0, **overrides):
+        from activetouch.sim.clutter_tasks import make_clutter_env
+
+        return make_clutter_env(name, seed=seed, **overrides)
+
+    return make_env
+
+
+def _register_clutter() -> None:
+    from activetouch.sim.clutter_tasks import CLUTTER_TASKS
+
+    for name, spec in CLUTTER_TASKS.items():
+        register_task(TaskEntry(name=name, family="clutter", description=f"visuo-tactile clutter: {spec.description}; "
+                                f"<= {spec.max_actions} actions; success: final ADI < 10 mm", provides=CLUTTER_PROVIDES,
+                                make_env=_make_clutter(name), prior=clutter_prior, success=clutter_success))
+
+
+_register_clutter()

@@ -138,7 +138,7 @@ def platform_info() -> dict[str, Any]:
 
 
 #: Figures any episode may write (removed before a re-run so a folder never shows another run's figures).
-FIGURES = ("curves.png", "belief.png", "contact.png", "particles.png", "entropy.png")
+FIGURES = ("curves.png", "belief.png", "contact.png", "particles.png", "entropy.png", "tiqf.png")
 
 
 def build_prior(env, features, n: int, generator: torch.Generator, device="cpu") -> torch.Tensor:
@@ -228,7 +228,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
         pbar.close()
     snapshots["last"] = est.snapshot(info, planner)
 
-    nlls = [r["nll"] for r in rows]
+    nlls = [r["nll"] for r in rows if "nll" in r]  # a Gaussian belief (TIQF) reports ADI instead of RUMI's NLL
     # planning time of the steps that replanned (the others reuse the nominal plan and take ~1 ms)
     plan_times = [r["plan_s"] for r in rows if "plan_s" in r and r.get("replanned", True)]
     success = task.success(rows, info, env)
@@ -236,9 +236,10 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
     summary = {
         "task": cfg.task, "method": cfg.method, "seed": cfg.seed,
         **success,
-        "min_nll": min(nlls), "final_nll": nlls[-1], "cumulative_nll": float(sum(nlls)),
-        "steps": len(rows) - 1, "converged": converged, "final_apc": rows[-1]["apc"],
-        "initial_nll": nlls[0], **est_summary,
+        "min_nll": min(nlls) if nlls else None, "final_nll": nlls[-1] if nlls else None,
+        "cumulative_nll": float(sum(nlls)) if nlls else None,
+        "steps": len(rows) - 1, "converged": converged, "final_apc": rows[-1].get("apc"),
+        "initial_nll": nlls[0] if nlls else None, **est_summary,
         "final_trans_err": rows[-1]["trans_err"], "final_rot_err_deg": rows[-1]["rot_err_deg"],
         "initial_mean_rot_err_deg": rows[0]["mean_rot_err_deg"], "final_mean_rot_err_deg": rows[-1]["mean_rot_err_deg"],
         "min_mean_rot_err_deg": min(r["mean_rot_err_deg"] for r in rows),
@@ -269,7 +270,9 @@ def _in_contact(obs) -> bool:
 
 
 def _progress_fields(m: dict[str, float], in_contact: bool) -> dict[str, str]:
-    fields = {"nll": f"{m['nll']:.1f}"}
+    fields = {"nll": f"{m['nll']:.1f}"} if "nll" in m else {}
+    if "adi_mm" in m:
+        fields["adi"] = f"{m['adi_mm']:.1f}mm"
     if "apc" in m:
         fields["apc"] = f"{m['apc'] * 1000:.1f}mm"
     fields["contact"] = str(int(in_contact))

@@ -10,10 +10,22 @@ from .known_object import KnownObject
 
 __all__ = ["load", "available"]
 
-_PACKAGED = ("mug", "drill", "cracker_box")
+_PACKAGED = ("mug", "drill", "cracker_box", "mustard_bottle", "bleach_cleanser", "tomato_soup_can", "sugar_box",
+             "potted_meat_can", "foam_brick")
 #: Cached-SDF cell size per packaged object (m): 1 mm for the thin-walled mug (walls ~1.2 mm), coarser for
-#: the bulkier drill and box to keep the one-off cache build short (cache size grows as 1/res^3).
-PACKAGED_SDF_RESOLUTION = {"mug": 0.001, "drill": 0.0015, "cracker_box": 0.002}
+#: the bulkier drill and box to keep the one-off cache build short (cache size grows as 1/res^3). The
+#: clutter objects use 2 mm, except 1.5 mm for the soup can (thin rolled rim, recessed lid).
+PACKAGED_SDF_RESOLUTION = {
+    "mug": 0.001,
+    "drill": 0.0015,
+    "cracker_box": 0.002,
+    "mustard_bottle": 0.002,
+    "bleach_cleanser": 0.002,
+    "tomato_soup_can": 0.0015,
+    "sugar_box": 0.002,
+    "potted_meat_can": 0.002,
+    "foam_brick": 0.002,
+}
 
 
 def _assets_root() -> Path:
@@ -21,12 +33,17 @@ def _assets_root() -> Path:
 
 
 def available() -> list[str]:
-    """Names of the packaged objects (YCB mug, power drill, cracker box)."""
+    """Names of the packaged objects: the YCB mug, power drill and cracker box, then the clutter objects
+    (mustard bottle, bleach cleanser, tomato soup can, sugar box, potted meat can, foam brick)."""
     return list(_PACKAGED)
 
 
 def load(name_or_path: str | Path, *, device=None, **kwargs) -> KnownObject:
-    """Load a packaged object by name (``"mug" | "drill" | "cracker_box"``) or any watertight mesh file.
+    """Load a packaged object by name or any watertight mesh file.
+
+    Packaged names (see :func:`available`): ``"mug"``, ``"drill"``, ``"cracker_box"``, ``"mustard_bottle"``,
+    ``"bleach_cleanser"``, ``"tomato_soup_can"``, ``"sugar_box"``, ``"potted_meat_can"``, ``"foam_brick"``
+    (YCB meshes in ``assets/objects/<name>/``, each with its convex decomposition in ``hulls/``).
 
     Files are read with trimesh (``.obj``, ``.stl``, ``.ply``, ``.off``, ...) and must be one closed,
     consistently wound surface in metres. Extra keyword arguments go to :class:`KnownObject`

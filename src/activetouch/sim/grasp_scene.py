@@ -33,6 +33,8 @@ __all__ = [
     "GraspGripperGeometry",
     "GRASP_GRIPPER",
     "build_grasp_scene",
+    "robot_and_table_root",
+    "add_actuators",
     "ARM_JOINTS",
     "PAD_JOINTS",
     "OBJECT_JOINTS",
@@ -114,37 +116,14 @@ def _add_gripper(link7: ET.Element, g: GraspGripperGeometry) -> None:
                       pos=_fmt([0, sgn * g.pad_half[1], g.pad_half[2]]), rgba="0.85 0.3 0.3 1", **common)
 
 
-def build_grasp_scene(object_name: str = "cracker_box", mesh_path: pathlib.Path | str | None = None,
-                      gripper: GraspGripperGeometry = GRASP_GRIPPER, timestep: float = 0.002,
-                      table_lower: tuple[float, float] = (-0.55, -0.6),
-                      table_upper: tuple[float, float] = (1.05, 0.6)) -> mujoco.MjModel:
-    """Compile the grasping scene (module docstring).
-
-    Args:
-        object_name: a key of ``scene.OBJECT_PHYSICS`` (selects the convex hulls and the mass).
-        mesh_path: the exact watertight mesh (object frame) for the inertia; default the packaged one.
-        timestep: physics step (s).
-    Returns:
-        the compiled ``MjModel``. Names: body ``object`` with joints ``OBJECT_JOINTS`` (consecutive in
-        ``qpos``), site ``ee``, bodies ``gripper``, ``pad_0``, ``pad_1``, joints ``PAD_JOINTS``, actuators
-        ``act_1..7`` (arm joint positions) and ``act_pad_0``, ``act_pad_1`` (pad slide positions), sensor
-        ``object_robot_force`` (net contact force between the object and the robot, world frame).
-    """
-    if object_name not in OBJECT_PHYSICS:
-        raise ValueError(f"unknown object {object_name!r}; known: {sorted(OBJECT_PHYSICS)}")
-    phys = OBJECT_PHYSICS[object_name]
-    if mesh_path is None:
-        from activetouch import objects
-
-        mesh_path = objects.load(object_name).mesh_path
-    mesh_path = pathlib.Path(mesh_path)
-    mesh = trimesh.load(mesh_path, force="mesh", process=False)
-    hull_files = sorted(hull_dir(object_name).glob("hull_*.obj"))
-    if not hull_files:
-        raise FileNotFoundError(f"no convex decomposition for {object_name!r}; run scripts/decompose.py")
-
+def robot_and_table_root(model_name: str, gripper: GraspGripperGeometry = GRASP_GRIPPER, timestep: float = 0.002,
+                         table_lower: tuple[float, float] = (-0.55, -0.6),
+                         table_upper: tuple[float, float] = (1.05, 0.6)) -> tuple[ET.Element, ET.Element, dict]:
+    """MJCF root of the iiwa on its fixed base with the two-pad gripper and the table (top at z = 0), shared by
+    the grasping scene and the clutter scene (``clutter_scene``). Returns ``(root, worldbody, assets)``; the
+    caller adds its objects, then :func:`add_actuators`, and compiles with ``assets``."""
     root = ET.fromstring(_robot_xml())
-    root.set("model", f"grasp_{object_name}")
+    root.set("model", model_name)
     comp = root.find("compiler")
     comp.set("inertiafromgeom", "false")
     comp.attrib.pop("meshdir", None)
@@ -189,6 +168,52 @@ def build_grasp_scene(object_name: str = "cracker_box", mesh_path: pathlib.Path 
                   size=_fmt([*(tu - tl) / 2, 0.025]), rgba="0.75 0.65 0.5 1", contype="1", conaffinity="6",
                   group="0", friction="0.5 0.005 0.0001")
 
+    return root, world, dict(_robot_assets())
+
+
+def add_actuators(root: ET.Element, gripper: GraspGripperGeometry = GRASP_GRIPPER) -> None:
+    """Position actuators ``act_1..7`` (arm joints, ``ARM_GAINS``) and ``act_pad_0/1`` (pad slides)."""
+    act = ET.SubElement(root, "actuator")
+    for i, (kp, kv) in enumerate(ARM_GAINS, start=1):
+        ET.SubElement(act, "position", name=f"act_{i}", joint=f"lbr_iiwa_joint_{i}", kp=str(kp), kv=str(kv),
+                      forcerange="-300 300")
+    for i, j in enumerate(PAD_JOINTS):
+        ET.SubElement(act, "position", name=f"act_pad_{i}", joint=j, kp=f"{gripper.pad_kp}",
+                      kv=f"{gripper.pad_kv}", forcerange=_fmt([-gripper.pad_force, gripper.pad_force]),
+                      ctrlrange=_fmt([0.0, gripper.max_opening / 2]))
+
+
+def build_grasp_scene(object_name: str = "cracker_box", mesh_path: pathlib.Path | str | None = None,
+                      gripper: GraspGripperGeometry = GRASP_GRIPPER, timestep: float = 0.002,
+                      table_lower: tuple[float, float] = (-0.55, -0.6),
+                      table_upper: tuple[float, float] = (1.05, 0.6)) -> mujoco.MjModel:
+    """Compile the grasping scene (module docstring).
+
+    Args:
+        object_name: a key of ``scene.OBJECT_PHYSICS`` (selects the convex hulls and the mass).
+        mesh_path: the exact watertight mesh (object frame) for the inertia; default the packaged one.
+        timestep: physics step (s).
+    Returns:
+        the compiled ``MjModel``. Names: body ``object`` with joints ``OBJECT_JOINTS`` (consecutive in
+        ``qpos``), site ``ee``, bodies ``gripper``, ``pad_0``, ``pad_1``, joints ``PAD_JOINTS``, actuators
+        ``act_1..7`` (arm joint positions) and ``act_pad_0``, ``act_pad_1`` (pad slide positions), sensor
+        ``object_robot_force`` (net contact force between the object and the robot, world frame).
+    """
+    if object_name not in OBJECT_PHYSICS:
+        raise ValueError(f"unknown object {object_name!r}; known: {sorted(OBJECT_PHYSICS)}")
+    phys = OBJECT_PHYSICS[object_name]
+    if mesh_path is None:
+        from activetouch import objects
+
+        mesh_path = objects.load(object_name).mesh_path
+    mesh_path = pathlib.Path(mesh_path)
+    mesh = trimesh.load(mesh_path, force="mesh", process=False)
+    hull_files = sorted(hull_dir(object_name).glob("hull_*.obj"))
+    if not hull_files:
+        raise FileNotFoundError(f"no convex decomposition for {object_name!r}; run scripts/decompose.py")
+
+    root, world, assets = robot_and_table_root(f"grasp_{object_name}", gripper, timestep, table_lower, table_upper)
+
     # ---------------------------------------------------------------- object (upright: x, y, z, yaw joints)
     asset = root.find("asset")
     for i, f in enumerate(hull_files):
@@ -209,19 +234,11 @@ def build_grasp_scene(object_name: str = "cracker_box", mesh_path: pathlib.Path 
                       condim="4", rgba="0.2 0.5 0.9 1")
 
     # ---------------------------------------------------------------- actuators and sensor
-    act = ET.SubElement(root, "actuator")
-    for i, (kp, kv) in enumerate(ARM_GAINS, start=1):
-        ET.SubElement(act, "position", name=f"act_{i}", joint=f"lbr_iiwa_joint_{i}", kp=str(kp), kv=str(kv),
-                      forcerange="-300 300")
-    for i, j in enumerate(PAD_JOINTS):
-        ET.SubElement(act, "position", name=f"act_pad_{i}", joint=j, kp=f"{gripper.pad_kp}",
-                      kv=f"{gripper.pad_kv}", forcerange=_fmt([-gripper.pad_force, gripper.pad_force]),
-                      ctrlrange=_fmt([0.0, gripper.max_opening / 2]))
+    add_actuators(root, gripper)
     sens = ET.SubElement(root, "sensor")
     ET.SubElement(sens, "contact", name="object_robot_force", body1="object", subtree2="iiwa_base", num="1",
                   data="force", reduce="netforce")
 
-    assets = dict(_robot_assets())
     for f in hull_files:
         assets[f"{object_name}_{f.name}"] = f.read_bytes()
     return mujoco.MjModel.from_xml_string(ET.tostring(root, encoding="unicode"), assets)

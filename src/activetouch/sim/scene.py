@@ -59,11 +59,19 @@ class ObjectPhysics:
     torsional: float = 0.002
 
 
-#: YCB masses: 025_mug 118 g, 035_power_drill 895 g, 003_cracker_box 411 g.
+#: YCB masses: 025_mug 118 g, 035_power_drill 895 g, 003_cracker_box 411 g, 006_mustard_bottle 603 g,
+#: 021_bleach_cleanser 1131 g, 005_tomato_soup_can 349 g, 004_sugar_box 514 g, 010_potted_meat_can 370 g,
+#: 061_foam_brick 28 g.
 OBJECT_PHYSICS = {
     "mug": ObjectPhysics(mass=0.118, friction=0.5),
     "drill": ObjectPhysics(mass=0.895, friction=0.5),
     "cracker_box": ObjectPhysics(mass=0.411, friction=0.4),
+    "mustard_bottle": ObjectPhysics(mass=0.603, friction=0.5),
+    "bleach_cleanser": ObjectPhysics(mass=1.131, friction=0.5),
+    "tomato_soup_can": ObjectPhysics(mass=0.349, friction=0.5),
+    "sugar_box": ObjectPhysics(mass=0.514, friction=0.5),
+    "potted_meat_can": ObjectPhysics(mass=0.370, friction=0.5),
+    "foam_brick": ObjectPhysics(mass=0.028, friction=0.7),
 }
 
 

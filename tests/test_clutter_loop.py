@@ -1,0 +1,144 @@
+"""The visuo-tactile pipeline on the shared episode loop: the TIQF estimator driven by scripted observations, the
+planner's phase order and stop rules, the summary and the Table I printout. Outcome numbers live in benchmarks."""
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from activetouch import objects
+from activetouch.experiments import clutter_tables
+from activetouch.experiments.estimators import TiqfEstimator
+from activetouch.experiments.runner import EpisodeConfig, run_episode
+from activetouch.geometry import make_pose
+from activetouch.planning.clutter import ClutterPlannerConfig
+from activetouch.registry import get_task
+from activetouch.sim.clutter_env import ClutterObservation
+
+
+class _Env:
+    """Just what the estimator reads: the target object."""
+
+    def __init__(self, name="mustard_bottle"):
+        self.object = objects.load(name)
+
+
+def _true_pose():
+    c, s = math.cos(0.4), math.sin(0.4)
+    R = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    return make_pose(R, torch.tensor([0.32, 0.01, 0.0], dtype=torch.float64))
+
+
+class _Task:
+    """A prior 3 cm and 15 deg off the truth."""
+
+    def prior(self, env, n, generator, device, **_):
+        T = _true_pose()
+        c, s = math.cos(0.26), math.sin(0.26)
+        dR = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        P = make_pose(dR @ T[:3, :3], T[:3, 3] + torch.tensor([0.02, -0.02, 0.0], dtype=torch.float64))
+        return P[None].float()
+
+
+def _surface_points(T, n, seed, side=None):
+    obj = objects.load("mustard_bottle")
+    p = obj.sample_surface(4 * n, seed=seed).double()
+    if side is not None:  # one side only (a partial view)
+        p = p[p[:, 0] * side > 0]
+    p = p[:n]
+    return (p @ T[:3, :3].T + T[:3, 3]).numpy()
+
+
+def test_tiqf_estimator_refines_with_views_and_touches_and_keeps_its_contract():
+    env = _Env()
+    est = TiqfEstimator(env, EpisodeConfig(task="clutter-mustard", method="tiqf-visuo-tactile"), "cpu")
+    gen = torch.Generator().manual_seed(0)
+    T = _true_pose()
+    info = {"true_pose": T.float()}
+    est.initialise(_Task(), ClutterObservation("reset", np.zeros((0, 3))), info, gen)
+    adi0 = est.metrics(info)["adi_mm"]
+    assert adi0 > 10  # the prior is off
+    row = est.observe(ClutterObservation("view", _surface_points(T, 400, 0), success=True), info, None, gen)
+    adi1 = est.metrics(info)["adi_mm"]
+    assert row["n_visual"] > 100 and row["tiqf_iterations"] >= 1
+    assert adi1 < 0.5 * adi0
+    # touches: fewer than 3 tactile points are kept without a registration; from 3 on, TIQF registers them
+    row = est.observe(ClutterObservation("touch", _surface_points(T, 2, 1), success=True), info, None, gen)
+    assert row["n_tactile"] == 2 and "tiqf_iterations" not in row
+    row = est.observe(ClutterObservation("touch", _surface_points(T, 10, 2), success=True), info, None, gen)
+    assert row["n_tactile"] == 12 and row["tiqf_iterations"] >= 1
+    assert est.metrics(info)["adi_mm"] < adi0
+    # a push clears the visual cloud (the scene moved), the pose stays
+    pose = est.belief.pose.clone()
+    row = est.observe(ClutterObservation("push", np.zeros((0, 3)), success=True), info, None, gen)
+    assert row["n_visual"] == 0 and torch.equal(est.belief.pose, pose)
+    # the estimator contract: one finite rigid pose, weight 1
+    assert est.poses.shape == (1, 4, 4) and torch.isfinite(est.poses).all()
+    assert float(est.weights.sum()) == 1.0
+    assert len(est.belief.history) == 5  # the prior + one pose per acquisition
+
+
+def test_tiqf_belief_settings_are_checked():
+    env = _Env()
+    with pytest.raises(ValueError, match="unknown belief settings"):
+        TiqfEstimator(env, EpisodeConfig(task="clutter-mustard", method="tiqf-static", belief={"bogus": 1}), "cpu")
+    with pytest.raises(ValueError, match="touch_cloud"):
+        TiqfEstimator(env, EpisodeConfig(task="clutter-mustard", method="tiqf-static",
+                                         belief={"touch_cloud": "both"}), "cpu")
+    with pytest.raises(ValueError, match="rho"):
+        TiqfEstimator(env, EpisodeConfig(task="clutter-mustard", method="tiqf-static", belief={"rho": -1.0}), "cpu")
+
+
+def test_clutter_prior_is_the_true_pose_perturbed():
+    from activetouch.sim.clutter_tasks import make_clutter_env
+
+    env = make_clutter_env("clutter-mustard")
+    T = _true_pose().float()
+    P = get_task("clutter-mustard").prior(env, 500, torch.Generator().manual_seed(0), info={"true_pose": T})
+    dxy = (P[:, :2, 3] - T[:2, 3]).numpy()
+    assert abs(dxy.std() - env.spec.prior_sigma_t) < 0.004
+    assert np.allclose(P[:, 2, 3].numpy(), float(T[2, 3]), atol=1e-6)  # upright, on the table
+    assert np.allclose(P[:, 2, 2].numpy(), 1.0, atol=1e-5)
+
+
+def test_planner_config_is_checked():
+    with pytest.raises(ValueError, match="max_views"):
+        ClutterPlannerConfig(max_views=-1)
+    with pytest.raises(ValueError, match="stop_translation"):
+        ClutterPlannerConfig(stop_translation=0.0)
+
+
+def _actions(out):
+    return [r["action"] for r in csv.DictReader(open(out / "steps.csv"))][1:]
+
+
+def test_static_vision_takes_one_view_then_stops(tmp_path):
+    s = run_episode(EpisodeConfig(task="clutter-mustard", method="tiqf-static", seed=0, figures=False,
+                                  progress=False), tmp_path)
+    assert _actions(tmp_path) == ["view", "stop"]
+    assert s["views"] == 1 and s["touches"] == 0 and s["picks"] == s["pushes"] == 0
+    assert s["stop_reason"] == "static vision: one view"
+    assert np.isfinite(s["final_adi_mm"]) and s["min_nll"] is None
+
+
+def test_visuo_tactile_phases_run_in_order_within_their_budgets(tmp_path):
+    planner = {"max_declutter": 2, "max_views": 2, "max_touches": 4, "num_views": 8, "rays_per_face": 4}
+    s = run_episode(EpisodeConfig(task="clutter-mustard", method="tiqf-visuo-tactile", seed=1, figures=True,
+                                  progress=False, planner=planner), tmp_path)
+    acts = _actions(tmp_path)
+    assert acts[-1] == "stop"
+    phase = {"pick": 0, "push": 0, "view": 1, "touch": 2, "stop": 3}
+    # declutter (views interleaved with grasps / pushes), then the vision views, then the touches
+    last_declutter = max([i for i, a in enumerate(acts) if a in ("pick", "push")], default=-1)
+    first_touch = acts.index("touch") if "touch" in acts else len(acts)
+    assert all(phase[a] <= 1 for a in acts[:last_declutter + 1])
+    assert all(a in ("touch", "stop") for a in acts[first_touch:])
+    assert sum(a in ("pick", "push") for a in acts) <= 2
+    assert 1 <= s["touches"] <= 4
+    assert (tmp_path / "tiqf.png").stat().st_size > 10_000
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["config"]["planner"] == planner
+    table = clutter_tables.table_i_markdown([summary])
+    assert "clutter-mustard" in table and "paper Median" in table
