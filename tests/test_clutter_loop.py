@@ -142,3 +142,32 @@ def test_visuo_tactile_phases_run_in_order_within_their_budgets(tmp_path):
     assert summary["config"]["planner"] == planner
     table = clutter_tables.table_i_markdown([summary])
     assert "clutter-mustard" in table and "paper Median" in table
+
+
+def test_a_target_pushed_out_of_sight_is_reported_not_silent():
+    """The target leaves the workspace (here: teleported off the table's far end): the views never show it, the
+    estimate stays the finite prior, and the planner stops saying so."""
+    import mujoco
+
+    from activetouch.planning.clutter import ClutterPlanner
+    from activetouch.sim.clutter_env import StopAction
+    from activetouch.sim.clutter_tasks import make_clutter_env
+    from activetouch.sim.robot import yaw_rotation
+
+    env = make_clutter_env("clutter-mustard", num_clutter=(1, 1))
+    obs, info = env.reset(0)
+    est = TiqfEstimator(env, EpisodeConfig(task="clutter-mustard", method="tiqf-active-vision"), "cpu")
+    est.initialise(get_task("clutter-mustard"), obs, info, torch.Generator().manual_seed(0))
+    env._place(0, np.array([0.9, 0.5]), yaw_rotation(0.0), 0.0005)  # off where the camera looks
+    mujoco.mj_forward(env.model, env.data)
+    planner = ClutterPlanner.from_env(env, None, 0, declutter=False, active_vision=True, touch=False, max_views=2,
+                                      num_views=4)
+    feats, action = obs, None
+    for _ in range(6):
+        action, _ = planner.next_action(est.belief, env.ee_state(), False, features=feats)
+        if isinstance(action, StopAction):
+            break
+        feats, *_ = env.step(action)
+        est.observe(feats, env._info(), None, torch.Generator())
+    assert isinstance(action, StopAction) and "in no view" in action.reason
+    assert torch.isfinite(est.belief.state.x).all() and torch.isfinite(est.belief.pose).all()

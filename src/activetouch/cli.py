@@ -91,7 +91,7 @@ def _print_clutter_summary(s: dict, out: Path) -> None:
           f"succeeded), {s['pushes']} pushes ({rate('push_success_rate')})")
     if s.get("stop_reason"):
         print(f"  stopped         {s['stop_reason']}")
-    files = [f for f in ("steps.csv", "summary.json", "tiqf.png") if (out / f).exists()]
+    files = [f for f in ("steps.csv", "summary.json", "tiqf.png", "declutter.png", "views.png") if (out / f).exists()]
     print(f"  results in      {out}/ ({', '.join(files)})")
 
 
@@ -273,7 +273,7 @@ def cmd_show(a) -> int:
 
 
 #: ``activetouch bench NAME`` runs ``benchmarks/bench_NAME.py`` (hyphens for underscores)
-BENCHMARKS = ("belief", "step", "planning", "touch-ig", "touch-step", "grasp-env", "touch-ablation", "tiqf")
+BENCHMARKS = ("belief", "step", "planning", "touch-ig", "touch-step", "grasp-env", "touch-ablation", "tiqf", "clutter", "nbt")
 
 
 def _repo_benchmarks() -> Path:

@@ -392,7 +392,7 @@ class TiqfEstimator:
     (``tactile``: register the tactile points alone, as the paper; ``visuo-tactile``: tactile and visual together).
     """
 
-    FIGURES = ("tiqf.png",)
+    FIGURES = ("tiqf.png", "declutter.png", "views.png")
     COLUMNS = ("adi_mm", "trans_err_mm", "action", "action_success", "contact_label", "n_visual", "n_tactile",
                "tiqf_iterations", "tiqf_converged", "pose_change_mm", "pose_change_deg", "sigma_trace")
     EXTRA = {"model_points": 2000, "voxel": 0.005, "touch_cloud": "tactile"}
@@ -493,12 +493,33 @@ class TiqfEstimator:
         return {"n_visual": len(self.belief.visual), "n_tactile": len(self.belief.tactile)}
 
     def snapshot(self, info, planner=None) -> dict[str, Any]:
-        return {}
+        """What the figures draw from the planner: its declutter decisions, views, NBV candidates, grid."""
+        if planner is None:
+            return {}
+        return {k: getattr(planner, k, None) for k in ("decisions", "view_positions", "candidates",
+                                                       "entropy_history", "grid")}
 
     def first_snapshot(self, info, planner=None) -> None:
         return None
 
     def write_figures(self, out, rows, snapshots, task_name: str, threshold: float | None) -> list:
+        """``tiqf.png`` (the scene, the estimate against the truth, ADI after each action), ``declutter.png`` (the
+        declutter graphs over the segmentations, Fig. 3a) and ``views.png`` (the views and the occupancy grid's
+        entropy, Fig. 4) when the method decluttered / looked actively."""
         from activetouch.experiments import clutter_plots
 
-        return [clutter_plots.tiqf_figure(out / "tiqf.png", self.env, self.belief, rows, title=task_name)]
+        paths = [clutter_plots.tiqf_figure(out / "tiqf.png", self.env, self.belief, rows, title=task_name)]
+        last = snapshots.get("last") or {}
+        if last.get("decisions") and hasattr(clutter_plots, "declutter_sequence_figure"):
+            paths.append(clutter_plots.declutter_sequence_figure(out / "declutter.png", last["decisions"],
+                                                                 names=self.env.names,
+                                                                 title=f"{task_name}: declutter graphs (Eq. 1-2)"))
+        if last.get("grid") is not None and len(last.get("view_positions") or []) > 1 and \
+                hasattr(clutter_plots, "views_figure"):
+            cand = last.get("candidates") or (None, None)
+            ctr = self.belief.pose.detach().cpu().numpy()[:3, 3]
+            paths.append(clutter_plots.views_figure(out / "views.png", last["grid"], ctr,
+                                                    np.asarray(last["view_positions"]), cand[0], cand[1],
+                                                    last["entropy_history"],
+                                                    title=f"{task_name}: next best views (Eq. 19-24)"))
+        return paths

@@ -138,7 +138,8 @@ def platform_info() -> dict[str, Any]:
 
 
 #: Figures any episode may write (removed before a re-run so a folder never shows another run's figures).
-FIGURES = ("curves.png", "belief.png", "contact.png", "particles.png", "entropy.png", "tiqf.png")
+FIGURES = ("curves.png", "belief.png", "contact.png", "particles.png", "entropy.png", "tiqf.png", "declutter.png",
+           "views.png")
 
 
 def build_prior(env, features, n: int, generator: torch.Generator, device="cpu") -> torch.Tensor:

@@ -48,13 +48,17 @@ class ClutterPlannerConfig:
     grid_margin: float = 0.08  # the grid covers the target's bounding sphere plus this (m)
     declutter_elevation_deg: float = 70.0  # the overhead view the declutter graph is built from
     touch_standoff: float = 0.05
+    nbv_ray_stride: int = 3  # Eq. 23's predicted view casts every k-th pixel's ray (k^2 fewer rays; not in the paper)
+    touch_clearance: float = 0.03  # a touch's gripper path keeps this from other objects' observed points (m)
 
     def __post_init__(self):
-        for k in ("max_declutter", "max_views", "max_touches", "num_views", "rays_per_face", "min_touches"):
+        for k in ("max_declutter", "max_views", "max_touches", "num_views", "rays_per_face", "min_touches",
+                  "nbv_ray_stride"):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or v < (0 if k.startswith("max") else 1):
                 raise ValueError(f"ClutterPlannerConfig.{k} must be an int >= {0 if k.startswith('max') else 1}, got {v!r}")
-        for k in ("stop_translation", "stop_rotation_deg", "grid_resolution", "grid_margin", "touch_standoff"):
+        for k in ("stop_translation", "stop_rotation_deg", "grid_resolution", "grid_margin", "touch_standoff",
+                  "touch_clearance"):
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"ClutterPlannerConfig.{k} must be > 0, got {v!r}")
@@ -114,6 +118,14 @@ class ClutterPlanner:
         self._last_kind = None
         self._pose_before: torch.Tensor | None = None
         self.stop_reason = ""
+        # for the figures: every declutter decision with its segmentation, the executed perception views, the last
+        # NBV candidates and gains, the occupancy grid's entropy after every integrated view
+        self.decisions: list[tuple[np.ndarray, object]] = []
+        self.view_positions: list[np.ndarray] = []
+        self.candidates: tuple[np.ndarray, np.ndarray] | None = None
+        self.entropy_history: list[float] = []
+        self.target_seen = False  # a perception view showed the target
+        self.obstacles = np.zeros((0, 3))  # other objects' points (last view + contacts of failed touches)
 
     # ------------------------------------------------------------------ helpers
     def _centroid(self, belief) -> np.ndarray:
@@ -138,6 +150,33 @@ class ClutterPlanner:
         ends = np.where(hit[:, None], pts, np.asarray(cam.pos) + cam.max_depth * dirs)
         self.grid.integrate(torch.as_tensor(cam.pos), torch.as_tensor(ends), torch.as_tensor(hit))
 
+    def _clear(self, cands, pose: torch.Tensor, length: float):
+        """The candidate touches whose gripper path keeps ``touch_clearance`` from every other object's observed
+        points (the last view) and from where earlier touches met another object: the vertical descent to the ray's
+        start and the ray up to the estimate's surface. All candidates when none is clear. SIMPLIFICATION: the
+        paper's NBT has no such test (its scenes are decluttered); here the declutter phase may stop early."""
+        if len(self.obstacles) == 0:
+            return cands
+        from scipy.spatial import cKDTree
+
+        from activetouch.planning.nbt import ray_mesh_intersect
+
+        hit, _, dist_hit = ray_mesh_intersect(self._vertices, self._faces, pose, cands.starts, cands.directions,
+                                              length)
+        tree = cKDTree(self.obstacles)
+        st = cands.starts.detach().cpu().double().numpy()
+        d = cands.directions.detach().cpu().double().numpy()
+        reach = np.where(hit.cpu().numpy(), dist_hit.cpu().double().numpy(), length)
+        a = np.linspace(0.0, 1.0, 12)
+        ray = st[:, None, :] + a[None, :, None] * (reach[:, None] * d)[:, None, :]  # (N, 12, 3) up to the surface
+        up = st[:, None, :] + np.stack([np.zeros_like(a), np.zeros_like(a), 0.25 * a], 1)[None]  # the descent
+        path = np.concatenate([ray, up], 1)
+        dist, _ = tree.query(path.reshape(-1, 3))
+        ok = dist.reshape(len(st), -1).min(1) > self.config.touch_clearance
+        if not ok.any():
+            return cands
+        return cands.subset(torch.as_tensor(np.nonzero(ok)[0]))
+
     def _new_grid(self, belief) -> None:
         from activetouch.information.occupancy import OccupancyConfig, OccupancyGrid
 
@@ -158,8 +197,17 @@ class ClutterPlanner:
         kind = getattr(obs, "kind", None)
         if kind in ("push", "pick"):
             self._last_result = bool(obs.success)
+        if kind == "view":
+            if self.phase == "vision" and int((obs.seg == 0).sum()) >= self.declutter_config.min_pixels:
+                self.target_seen = True
+            other = (obs.seg >= 1) & np.isfinite(obs.cloud).all(-1)
+            self.obstacles = obs.cloud[other].reshape(-1, 3)
+        if kind == "touch" and not obs.success and obs.contact_label > 0:
+            ee = np.asarray(ee_state)[:3]
+            self.obstacles = np.concatenate([self.obstacles, ee[None]])
         if kind == "view" and self.grid is not None:
             self._integrate(obs)
+            self.entropy_history.append(float(self.grid.entropy()))
         timings: dict[str, float] = {}
         action = None
         while action is None:
@@ -198,6 +246,7 @@ class ClutterPlanner:
             return None
         decision = plan_declutter(view, 0, self.declutter_config)
         self.last_decision = decision
+        self.decisions.append((np.asarray(obs.seg).copy(), decision))
         if decision.next_object is None or self.n_declutter >= c.max_declutter:
             self.phase = "vision"
             return None
@@ -228,6 +277,7 @@ class ClutterPlanner:
             self._new_grid(belief)
             pos, _ = hemisphere_views(torch.as_tensor(ctr), dataclasses.replace(self.nbv, num_views=1), self.gen)
             self.n_views += 1
+            self.view_positions.append(pos[0].numpy())
             return ViewAction(tuple(pos[0].tolist()), tuple(ctr))
         done = (not c.active_vision) or self.n_views > c.max_views or (self.n_views >= 2 and self._stop_rule(belief))
         if done:
@@ -235,18 +285,24 @@ class ClutterPlanner:
             self.stop_reason = ("static vision: one view" if not c.active_vision else
                                 "vision: estimate changed < 5 mm and 2 deg" if self.n_views <= c.max_views else
                                 f"vision: {c.max_views} next best views")
+            if not self.target_seen:  # recovery, not silence: the estimate is still the prior
+                self.stop_reason += "; the target was in no view (pushed away or hidden): the estimate is the prior"
             return None
         pos, R = hemisphere_views(torch.as_tensor(ctr), self.nbv, self.gen)
         # the rays of the cameras the environment will use (PinholeCamera's look-at roll, not Eq. 21's)
         cams = cameras_for(pos, R, self.nbv)
-        dirs = torch.as_tensor(np.stack([c.ray_directions() for c in cams]), dtype=self.grid.dtype)
+        k = self.config.nbv_ray_stride  # the predicted measurement on every k-th pixel row and column
+        H, W = self.nbv.height, self.nbv.width
+        dirs = torch.as_tensor(np.stack([c.ray_directions().reshape(H, W, 3)[::k, ::k].reshape(-1, 3) for c in cams]),
+                               dtype=self.grid.dtype)
         best, gains = select_next_best_view(self.grid, pos.to(self.grid.dtype), dirs, self.nbv.max_depth)
         self.n_views += 1
-        self.last_gains = gains
+        self.candidates = (pos.numpy(), gains.detach().cpu().numpy())
+        self.view_positions.append(pos[best].numpy())
         return ViewAction(cams[best].pos, cams[best].target)
 
     def _touch(self, belief, obs):
-        from activetouch.planning.nbt import random_touches, select_next_best_touch, touch_candidates
+        from activetouch.planning.nbt import ray_mesh_intersect, select_next_best_touch, touch_candidates
         from activetouch.sim.clutter_env import TouchAction
 
         c = self.config
@@ -262,12 +318,16 @@ class ClutterPlanner:
         pose = belief.pose.detach().double()
         length = self.config.touch_standoff + float(np.max(self._hi - self._lo))
         try:
-            if n_tac < c.min_touches:
-                cands, _ = random_touches(self._vertices, self._faces, pose, self._lo, self._hi, self.nbt, self.gen,
-                                          n=1, max_distance=length)
-                i = 0
+            if n_tac < c.min_touches:  # random touches first (Sec. II-D-2), among the clear ones
+                cands = self._clear(touch_candidates(pose, self._lo, self._hi, self.nbt, self.gen), pose, length)
+                hit, _, _ = ray_mesh_intersect(self._vertices, self._faces, pose, cands.starts, cands.directions,
+                                               length)
+                idx = torch.nonzero(hit).squeeze(1)
+                if idx.numel() == 0:
+                    raise ValueError("no clear candidate ray hits the estimate")
+                i = int(idx[torch.randint(idx.numel(), (1,), generator=self.gen)])
             else:
-                cands = touch_candidates(pose, self._lo, self._hi, self.nbt, self.gen)
+                cands = self._clear(touch_candidates(pose, self._lo, self._hi, self.nbt, self.gen), pose, length)
                 i, _ = select_next_best_touch(belief.model_points, self._vertices, self._faces, belief.state,
                                               belief.tactile, cands, belief.config, max_distance=length)
         except ValueError as e:  # no candidate ray hits the estimate

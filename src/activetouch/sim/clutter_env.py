@@ -627,12 +627,14 @@ class ClutterEnv:
             self._hold(2)
         label = first[0][0] if first else -1
         pts = np.array([p for (lab, _, p) in first if lab == 0]).reshape(-1, 3)
+        # a contact with the target on the way to the start point is a touch too (the tactile points are real)
+        touched = touched or (aborted and label == 0)
         # retreat along the ray and up
         back = self.ee_state()
         back[:3] = back[:3] - 0.04 * d
         back[2] = max(back[2], 0.012)
         self._line(back, 0.0, self.spec.max_ee_step)
-        ok = (not aborted) and touched and label == 0 and len(pts) > 0
+        ok = touched and label == 0 and len(pts) > 0
         return ClutterObservation("touch", pts if ok else np.zeros((0, 3)), in_contact=ok, success=ok,
                                   contact_label=label)
 
