@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One-shot set-up for a fresh Debian/Ubuntu machine with Python >= 3.11:
 #   * installs Debian's libusb-1.0-0 (open3d, imported by pytorch_volumetric, needs it) when missing,
+#   * installs Debian's chromium (the viewer's browser test) when missing,
 #   * creates .venv/ at the repository root,
 #   * installs torch as a CPU build unless an NVIDIA GPU is present (a bare `torch` pulls GBs of CUDA),
 #   * installs activetouch (editable) with its test extras.
@@ -14,6 +15,19 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
     echo "[setup] installing libusb-1.0-0 (needed by open3d)"
     SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
     $SUDO apt-get update -qq && $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
+fi
+
+# Debian's chromium: tests/test_viewer.py opens the 3-D viewer (`activetouch view`) in headless Chromium
+if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1; then
+    if command -v apt-get >/dev/null 2>&1; then
+        echo "[setup] installing chromium (the viewer test renders the scene in headless Chromium)"
+        SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+        $SUDO apt-get update -qq && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null \
+            || echo "[setup] note: could not install chromium; tests/test_viewer.py skips its browser check"
+    else
+        echo "[setup] note: no apt-get here: install Chromium yourself for the viewer's browser test" \
+             "(tests/test_viewer.py skips it without one)"
+    fi
 fi
 
 "$PY" -c 'import sys; assert sys.version_info >= (3, 11), "activetouch needs Python >= 3.11"'

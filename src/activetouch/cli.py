@@ -10,6 +10,7 @@
     activetouch demo                           RUMI on mug-2 with figures (the README's demo)
     activetouch bench {belief,step,planning,touch-ig,touch-step,grasp-env,touch-ablation,tiqf,all}
     activetouch run grasp-box-0 --method touch-ig   the touch paper: poke, localise, grasp
+    activetouch replay runs/mug0/episode.h5 [--method M]   re-run an estimator offline on a recorded episode
 """
 from __future__ import annotations
 
@@ -196,13 +197,38 @@ def cmd_sweep(a) -> int:
         raise ValueError(f"--seeds must be >= 1, got {a.seeds}")
     if a.seed0 < 0:
         raise ValueError(f"--seed0 must be >= 0, got {a.seed0}")
+    from activetouch import registry
+
+    pairs = None
+    if a.grid:  # every compatible pair among the given (default: all registered) tasks and methods
+        tasks = a.tasks or registry.tasks()
+        methods = a.methods or [m for m in registry.methods() if not registry.get_method(m).needs_arguments]
+        for t in tasks:
+            registry.get_task(t)
+        for m in methods:
+            registry.get_method(m)
+        pairs = [(t, m) for t in tasks for m in methods if registry.compatible(t, m)]
+        if not pairs:
+            raise ValueError(f"no compatible (task, method) pair among tasks {tasks} and methods {methods}")
+        a.tasks = [t for t, _ in pairs]
+    elif not a.tasks:
+        raise ValueError("sweep needs --tasks (or --grid for every compatible pair)")
+    methods = a.methods or ["rumi"]
+    backend = "ray" if a.ray_address else a.backend
     base = _episode_config(a, a.tasks[0], 0)
-    summaries = run_sweep(a.tasks, a.methods, list(range(a.seed0, a.seed0 + a.seeds)), a.out,
+    summaries = run_sweep(a.tasks, methods, list(range(a.seed0, a.seed0 + a.seeds)), a.out,
                           base=EpisodeConfig(**{**base.__dict__, "figures": not a.no_figures}),
-                          workers=a.workers, backend=a.backend)
+                          workers=a.workers, backend=backend, ray_address=a.ray_address, pairs=pairs,
+                          retries=a.retries)
     table = _tables(summaries)
     Path(a.out, "table.md").write_text(table + "\n")
     print(table)
+    if a.grid:
+        from activetouch.experiments.grid_table import grid_markdown
+
+        grid = grid_markdown(summaries)
+        Path(a.out, "grid.md").write_text(grid + "\n")
+        print("\nGrid (every compatible task x method):\n" + grid)
     return 0
 
 
@@ -228,6 +254,28 @@ def cmd_report(a) -> int:
     if not Path(a.root).is_dir():
         raise ValueError(f"{a.root!r} is not a folder")
     print(format_report(build_report(a.root, a.out)))
+    return 0
+
+
+#: what ``activetouch replay`` prints of the estimator's final metrics (the ones it reports, in this order)
+REPLAY_METRICS = ("nll", "apc", "adi_mm", "trans_err", "rot_err_deg", "mean_rot_err_deg", "xy_err", "yaw_err_deg",
+                  "entropy", "sigma_trace", "active_share")
+
+
+def cmd_replay(a) -> int:
+    from activetouch.experiments.episode_log import replay
+
+    s = replay(a.log, method=a.method, out_dir=a.out, device=a.device)
+    other = "" if s["method"] == s["logged_method"] else f" (recorded with {s['logged_method']})"
+    print(f"\nreplayed {s['method']} on {s['task']} (seed {s['seed']}) from {s['source_log']}{other}")
+    print(f"  steps           {s['steps']:10d}" + ("" if s["log_complete"] else
+                                                   "   (an unfinished log: the run stopped before its end)"))
+    final = s["final"]
+    shown = [k for k in REPLAY_METRICS if k in final] or sorted(final)
+    print("  final           " + ", ".join(f"{k} {final[k]:.4g}" for k in shown))
+    if s.get("success") is not None:
+        print(f"  success         {s['success']}")
+    print(f"  results in      {s['out_dir']}/ (steps.csv, summary.json)")
     return 0
 
 
@@ -297,6 +345,29 @@ def cmd_bench(a) -> int:
     return 0
 
 
+def cmd_view(a) -> int:
+    import time
+
+    from activetouch.experiments.episode_log import LOG_NAME
+
+    folder = Path(a.dir)
+    log_file = folder if folder.is_file() else folder / LOG_NAME
+    if not log_file.is_file():
+        raise ValueError(f"{a.dir!r} has no {LOG_NAME}: pass a finished episode folder (every run writes one)")
+    from activetouch import viewer
+
+    server = viewer.serve(log_file, port=a.port, host=a.host, block=False)
+    print(f"viewer of {log_file} at http://{a.host}:{server.get_port()} (Ctrl-C to stop)", flush=True)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="activetouch", description="Active tactile pose estimation of known objects.",
                                 allow_abbrev=False)
@@ -318,13 +389,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("sweep", help="run tasks x methods x seeds (resumes: finished episodes are skipped)",
                        allow_abbrev=False)
-    s.add_argument("--tasks", nargs="+", required=True)
-    s.add_argument("--methods", nargs="+", default=["rumi"])
+    s.add_argument("--tasks", nargs="+", default=None)
+    s.add_argument("--methods", nargs="+", default=None, help="methods (default: rumi; with --grid: all)")
+    s.add_argument("--grid", action="store_true",
+                   help="every compatible (task, method) pair of --tasks x --methods (default: all registered); "
+                        "writes grid.md, one row per pair")
     s.add_argument("--seeds", type=int, default=10, help="number of seeds")
     s.add_argument("--seed0", type=int, default=0)
     s.add_argument("--out", default="runs/sweep")
     s.add_argument("--workers", type=int, default=1)
     s.add_argument("--backend", choices=["process", "ray"], default="process")
+    s.add_argument("--ray-address", default=None,
+                   help="run on the existing Ray cluster at this address (e.g. ray://head:10001 or auto); implies "
+                        "--backend ray; episode folders must be on storage every node sees")
+    s.add_argument("--retries", type=int, default=2, help="Ray: re-runs of an episode whose worker died")
     _episode_args(s, method=False)
     s.set_defaults(func=cmd_sweep)
 
@@ -337,6 +415,14 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", default=None, help="output folder (default ROOT/report)")
     rp.set_defaults(func=cmd_report)
 
+    rl = sub.add_parser("replay", help="re-run a method's estimator offline on a recorded episode (episode.h5)",
+                        allow_abbrev=False)
+    rl.add_argument("log", help="an episode.h5 (every run writes one) or the episode folder holding it")
+    rl.add_argument("--method", default=None, help="method whose estimator to run (default: the recorded one)")
+    rl.add_argument("--out", default=None, help="output folder (default: LOG_FOLDER/replay-METHOD)")
+    rl.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    rl.set_defaults(func=cmd_replay)
+
     sub.add_parser("tasks", help="list tasks and the methods that run on each").set_defaults(func=cmd_tasks)
     me = sub.add_parser("methods", help="list methods and what they need; --task T: which run on T and why not")
     me.add_argument("--task", default=None)
@@ -347,6 +433,13 @@ def build_parser() -> argparse.ArgumentParser:
     sh.add_argument("--seed", type=int, default=0)
     sh.add_argument("--out", default=None)
     sh.set_defaults(func=cmd_show)
+
+    vw = sub.add_parser("view", help="3-D viewer of a finished episode in the browser (needs viser)",
+                        allow_abbrev=False)
+    vw.add_argument("dir", help="an episode folder holding episode.h5 (every run writes one)")
+    vw.add_argument("--port", type=int, default=8080)
+    vw.add_argument("--host", default="127.0.0.1")
+    vw.set_defaults(func=cmd_view)
 
     b = sub.add_parser("bench", help="run a benchmark script from benchmarks/")
     b.add_argument("which", choices=[*BENCHMARKS, "all"])

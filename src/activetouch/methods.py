@@ -54,7 +54,8 @@ def make_reach_only(env, belief_config, seed, **overrides):
 
 
 @register_method("scripted", "no planning: replays planner={'actions': [[...], ...]} (tests, benchmarks, replays)",
-                 requires=("ee-delta-actions",), quick=lambda env: {"actions": [[0.5] * env.action_dim] * 2})
+                 requires=("ee-delta-actions",), quick=lambda env: {"actions": [[0.5] * env.action_dim] * 2},
+                 needs_arguments=True)
 def make_scripted(env, belief_config, seed, actions=None):
     from activetouch.planning.scripted import ScriptedPlanner
 
@@ -121,7 +122,7 @@ def _quick_pokes(env):
 
 @register_method("scripted-poke", "no planning: replays planner={'pokes': [[[x, y, z, yaw], ...], ...]} then grasps "
                                   "the ML state (tests, replays)", belief="touch-particles",
-                 requires=TOUCH_PLANNER_NEEDS, quick=_quick_pokes)
+                 requires=TOUCH_PLANNER_NEEDS, quick=_quick_pokes, needs_arguments=True)
 def make_scripted_poke(env, belief_config, seed, pokes=None):
     from activetouch.planning.scripted import ScriptedPokePlanner
 

@@ -93,6 +93,8 @@ class MethodSpec:
     planner_requires: frozenset[str] = field(default_factory=frozenset)
     #: planner overrides that make a few steps cheap (the contract test, smoke runs): a dict or ``env -> dict``
     quick: Any = None
+    #: the method only runs with planner arguments (the scripted replays): ``sweep --grid`` leaves it out
+    needs_arguments: bool = False
 
     def quick_overrides(self, env) -> dict[str, Any]:
         q = self.quick(env) if callable(self.quick) else self.quick
@@ -128,14 +130,16 @@ def register_belief(name: str, description: str = "", requires=()):
     return deco
 
 
-def register_method(name: str, description: str = "", belief: str = "rumi-particles", requires=(), quick=None):
+def register_method(name: str, description: str = "", belief: str = "rumi-particles", requires=(), quick=None,
+                    needs_arguments: bool = False):
     """Decorator registering a planner factory under ``name``, run with the belief ``belief``; ``requires``: what
-    the planner needs from a task; ``quick``: planner overrides for cheap smoke runs (dict or ``env -> dict``)."""
+    the planner needs from a task; ``quick``: planner overrides for cheap smoke runs (dict or ``env -> dict``);
+    ``needs_arguments``: it cannot run without planner arguments (left out of ``sweep --grid``)."""
 
     def deco(factory: Callable[..., Planner]) -> Callable[..., Planner]:
         if name in _METHODS:
             raise ValueError(f"method {name!r} is already registered")
-        _METHODS[name] = MethodSpec(name, description, factory, belief, frozenset(requires), quick)
+        _METHODS[name] = MethodSpec(name, description, factory, belief, frozenset(requires), quick, needs_arguments)
         return factory
 
     return deco

@@ -37,7 +37,9 @@ def _median_mad(x: list[float]) -> str:
 
 
 def table_i_markdown(summaries: Sequence[dict[str, Any]]) -> str:
-    """Markdown: one row per task (target) and the Mean / Median rows; per method ``ADI | L2 (trans)`` in mm."""
+    """Markdown: one row per task (target: median +- median absolute deviation over its seeds) and the overall Mean
+    (+- std) and Median (+- MAD) rows, then the paper's; per method ``ADI | L2 (trans)`` in mm. Then one row per
+    method: successes, actions and the decluttering's grasp / push success rates."""
     ss = [s for s in summaries if is_clutter_summary(s)]
     methods = [m for m in METHOD_ORDER if any(s["method"] == m for s in ss)]
     methods += sorted({s["method"] for s in ss} - set(methods))
@@ -50,7 +52,7 @@ def table_i_markdown(summaries: Sequence[dict[str, Any]]) -> str:
     out = [head, "|---|" + "---|---|" * len(methods)]
     for t in tasks:
         n = len(vals(t, methods[0], "final_adi_mm")) if methods else 0
-        cells = [f"{_mean_std(vals(t, m, 'final_adi_mm'))} | {_mean_std(vals(t, m, 'final_trans_err_mm'))}"
+        cells = [f"{_median_mad(vals(t, m, 'final_adi_mm'))} | {_median_mad(vals(t, m, 'final_trans_err_mm'))}"
                  for m in methods]
         out.append(f"| {t} ({n} seeds) | " + " | ".join(cells) + " |")
     out.append("| **Mean** | " + " | ".join(f"{_mean_std(vals(None, m, 'final_adi_mm'))} | "

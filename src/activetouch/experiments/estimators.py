@@ -389,13 +389,15 @@ class TiqfEstimator:
 
     Belief settings (``--belief KEY=VALUE``): ``TIQFConfig`` fields, plus ``model_points`` (model cloud size,
     default 2000), ``voxel`` (the visual cloud's voxel size, default 0.005 m) and ``touch_cloud``
-    (``tactile``: register the tactile points alone, as the paper; ``visuo-tactile``: tactile and visual together).
+    (``tactile``: register the tactile points alone, as the paper; ``visuo-tactile``: tactile and visual together;
+    ``verify``: together while the touches lie within ``verify_tol`` (default 4 mm, median) of the current estimate's
+    surface, else tactile alone: the touches verify the visual estimate or replace it).
     """
 
     FIGURES = ("tiqf.png", "declutter.png", "views.png")
     COLUMNS = ("adi_mm", "trans_err_mm", "action", "action_success", "contact_label", "n_visual", "n_tactile",
-               "tiqf_iterations", "tiqf_converged", "pose_change_mm", "pose_change_deg", "sigma_trace")
-    EXTRA = {"model_points": 2000, "voxel": 0.005, "touch_cloud": "tactile"}
+               "tiqf_iterations", "tiqf_converged", "touch_cloud", "pose_change_mm", "pose_change_deg", "sigma_trace")
+    EXTRA = {"model_points": 2000, "voxel": 0.005, "touch_cloud": "tactile", "verify_tol": 0.004}
 
     def __init__(self, env, cfg, device):
         from activetouch.belief.tiqf import TIQFConfig
@@ -404,8 +406,9 @@ class TiqfEstimator:
         self.obj = env.object
         over = dict(cfg.belief)
         self.extra = {k: over.pop(k, v) for k, v in self.EXTRA.items()}
-        if self.extra["touch_cloud"] not in ("tactile", "visuo-tactile"):
-            raise ValueError(f"belief touch_cloud must be 'tactile' or 'visuo-tactile', got {self.extra['touch_cloud']!r}")
+        if self.extra["touch_cloud"] not in ("tactile", "visuo-tactile", "verify"):
+            raise ValueError(f"belief touch_cloud must be 'tactile', 'visuo-tactile' or 'verify', "
+                             f"got {self.extra['touch_cloud']!r}")
         if not (isinstance(self.extra["model_points"], int) and self.extra["model_points"] >= 10):
             raise ValueError(f"belief model_points must be an int >= 10, got {self.extra['model_points']!r}")
         if not (float(self.extra["voxel"]) > 0):
@@ -463,7 +466,11 @@ class TiqfEstimator:
         elif obs.kind == "touch" and len(pts):
             b.tactile = torch.cat([b.tactile, pts])
             if len(b.tactile) >= 3:
-                cloud = b.tactile if self.extra["touch_cloud"] == "tactile" else torch.cat([b.tactile, b.visual])
+                mode = self.extra["touch_cloud"]
+                if mode == "verify":  # "correct and verify": keep the visual points while the touches agree with them
+                    mode = "visuo-tactile" if self._touch_residual(b) < float(self.extra["verify_tol"]) else "tactile"
+                    row["touch_cloud"] = mode
+                cloud = b.tactile if mode == "tactile" else torch.cat([b.tactile, b.visual])
         if cloud is not None and len(cloud) >= 3:
             _, b.state, tinfo = register(b.model_points, cloud, b.state, self.config)
             row.update(tiqf_iterations=tinfo["iterations"], tiqf_converged=bool(tinfo["converged"]))
@@ -472,6 +479,13 @@ class TiqfEstimator:
                    pose_change_mm=1000 * float(translation_error(b.pose, prev)),
                    pose_change_deg=math.degrees(float(rotation_error(b.pose, prev))))
         return row
+
+    @staticmethod
+    def _touch_residual(b: "TiqfBelief") -> float:
+        """Median distance (m) of the tactile points to the model at the current estimate."""
+        T = b.pose.double()
+        local = (b.tactile - T[:3, 3]) @ T[:3, :3]
+        return float(torch.cdist(local, b.model_points).min(dim=1).values.median())
 
     def metrics(self, info) -> dict[str, float]:
         """ADI (Eq. 28), translation (Eq. 26) and rotation (Eq. 27) errors of the estimate."""

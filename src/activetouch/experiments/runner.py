@@ -8,7 +8,6 @@ step go to ``steps.csv`` as soon as the step ends and ``summary.json`` is writte
 from __future__ import annotations
 
 import logging
-import math
 import os
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -18,7 +17,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from activetouch.experiments import metrics
 from activetouch.experiments.records import STEP_COLUMNS, StepWriter, is_finished, read_steps, write_json_atomic
 
 log = logging.getLogger(__name__)
@@ -158,6 +156,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
     APC), the environment ends the episode (a grasp) or after ``T`` steps. ``on_step(t, estimator, row)`` is
     called after every step's update (step 0: after the initialisation), e.g. by the contract test.
     """
+    from activetouch.experiments.episode_log import open_episode_log
     from activetouch.registry import get_belief
 
     task, method, env = check_config(cfg, out_dir)  # every check before the long work (CHSEL, planning)
@@ -175,6 +174,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
     planner = method.make_planner(env, est.config, cfg.seed, **cfg.planner)
 
     obs, info = env.reset(seed=cfg.seed)
+    elog = open_episode_log(out, cfg, obs, info, gen)  # episode.h5: the reset, then every step (episode_log)
     counts = est.initialise(task, obs, info, gen)
     planner.reset()
 
@@ -210,9 +210,11 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
             ee_before = env.ee_pose() if hasattr(env, "ee_pose") else None
             obs, _, terminated, truncated, info = env.step(u)  # lines 7-9
             in_contact = _in_contact(obs)
+            logged = elog.capture(gen)  # the RNG states the update starts from (an exact replay restores them)
             t2 = time.perf_counter()
             fields = est.observe(obs, info, ee_before, gen)  # lines 10-20
             t3 = time.perf_counter()
+            elog.step(t, u, obs, info, ee_before, logged, timings)  # appended, flushed and closed per step
             m = est.metrics(info)
             row = {"step": t, **m, **fields, "in_contact": in_contact,
                    "plan_s": t1 - t0, "update_s": t3 - t2, "step_s": t2 - t1, **timings}
@@ -225,6 +227,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
                 pbar.update(1)  # after the postfix: a plain progress line prints this step's numbers
             if terminated or truncated:
                 break
+    elog.close()
     if pbar is not None:
         pbar.close()
     snapshots["last"] = est.snapshot(info, planner)
@@ -293,14 +296,25 @@ def episode_dir(root: str | Path, task: str, method: str, seed: int) -> Path:
 
 
 def run_sweep(tasks, methods, seeds, root, base: EpisodeConfig | None = None, workers: int = 1,
-              backend: str = "process") -> list[dict[str, Any]]:
+              backend: str = "process", ray_address: str | None = None, pairs=None,
+              retries: int = 2) -> list[dict[str, Any]]:
     """Run every (task, method, seed) episode, skipping finished ones (resume), in a local process pool
-    (default) or on Ray (``backend='ray'``, optional extra ``activetouch[ray]``)."""
+    (default) or on Ray (``backend='ray'``, optional extra ``activetouch[ray]``): a local Ray instance, or the
+    existing cluster at ``ray_address``, one Ray task per episode retried up to ``retries`` times when its worker
+    dies. ``pairs``: run these ``(task, method)`` pairs instead of every task x method (``sweep --grid``)."""
     from activetouch.experiments.progress import progress
     from activetouch.experiments.records import load_summaries, settings_diff
 
     base = base or EpisodeConfig()
     tasks, methods, seeds = list(tasks), list(methods), list(seeds)
+    if pairs is not None:
+        pairs = [tuple(p) for p in pairs]
+        if not pairs:
+            raise ValueError("a grid sweep needs at least one compatible (task, method) pair")
+        tasks = list(dict.fromkeys(t for t, _ in pairs))
+        methods = list(dict.fromkeys(m for _, m in pairs))
+    else:
+        pairs = [(t, m) for t in tasks for m in methods]
     for name, v in (("tasks", tasks), ("methods", methods), ("seeds", seeds)):
         if not v:
             raise ValueError(f"a sweep needs at least one of {name}")
@@ -312,29 +326,31 @@ def run_sweep(tasks, methods, seeds, root, base: EpisodeConfig | None = None, wo
         raise ValueError(f"workers must be >= 1, got {workers!r}")
     if backend not in ("process", "ray"):
         raise ValueError(f"backend must be 'process' or 'ray', got {backend!r}")
+    if ray_address is not None and backend != "ray":
+        raise ValueError("ray_address needs backend='ray'")
+    if not isinstance(retries, int) or retries < 0:
+        raise ValueError(f"retries must be an int >= 0, got {retries!r}")
     check_output_dir(root)
-    for task in tasks:  # names, device, particles and planner settings: checked before any episode starts
-        for method in methods:
-            check_config(replace(base, task=task, method=method, seed=seeds[0]))
+    for task, method in pairs:  # names, device, particles and planner settings: checked before any episode starts
+        check_config(replace(base, task=task, method=method, seed=seeds[0]))
     jobs = []
-    for task in tasks:
-        for method in methods:
-            for seed in seeds:
-                d = episode_dir(root, task, method, seed)
-                cfg = replace(base, task=task, method=method, seed=seed, progress=False)
-                if is_finished(d):
-                    done = load_summaries([d])[0].get("config", {})
-                    diff = settings_diff(done, asdict(cfg))
-                    if diff:  # a resume never mixes runs of different settings
-                        raise ValueError(f"{d} holds an episode run with other settings ({diff}): resume with "
-                                         "the same settings or sweep into another --out folder")
-                    continue
-                jobs.append((cfg, d))
-    log.info("%d episodes to run (%d already finished)", len(jobs), len(tasks) * len(methods) * len(seeds) - len(jobs))
+    for task, method in pairs:
+        for seed in seeds:
+            d = episode_dir(root, task, method, seed)
+            cfg = replace(base, task=task, method=method, seed=seed, progress=False)
+            if is_finished(d):
+                done = load_summaries([d])[0].get("config", {})
+                diff = settings_diff(done, asdict(cfg))
+                if diff:  # a resume never mixes runs of different settings
+                    raise ValueError(f"{d} holds an episode run with other settings ({diff}): resume with "
+                                     "the same settings or sweep into another --out folder")
+                continue
+            jobs.append((cfg, d))
+    log.info("%d episodes to run (%d already finished)", len(jobs), len(pairs) * len(seeds) - len(jobs))
     if jobs:
         bar = progress(len(jobs), "episodes", unit="episode", every_s=0.0)
         if backend == "ray":
-            _run_ray(jobs, workers)
+            _run_ray(jobs, workers, ray_address, retries, bar)
         elif workers <= 1:
             for c, d in jobs:
                 run_episode(c, d)
@@ -349,7 +365,7 @@ def run_sweep(tasks, methods, seeds, root, base: EpisodeConfig | None = None, wo
                     f.result()
                     bar.update(1)
         bar.close()
-    return load_summaries(episode_dir(root, t, m, s) for t in tasks for m in methods for s in seeds)
+    return load_summaries(episode_dir(root, t, m, s) for t, m in pairs for s in seeds)
 
 
 def _run_job(cfg: EpisodeConfig, d: Path) -> dict[str, Any]:
@@ -357,14 +373,31 @@ def _run_job(cfg: EpisodeConfig, d: Path) -> dict[str, Any]:
     return run_episode(cfg, d)
 
 
-def _run_ray(jobs, workers):  # pragma: no cover - optional extra
+def _run_ray(jobs, workers: int, address: str | None = None, retries: int = 2, bar=None) -> None:
+    """One Ray task per episode (``max_retries=retries``: re-run when its worker process dies); on the cluster at
+    ``address`` (``ray.init(address=...)``, e.g. ``ray://head:10001`` or ``auto``), else on a local Ray instance with
+    ``workers`` CPUs. Episode folders must be on storage every node sees (the results are files)."""
     try:
         import ray
     except ImportError as e:
-        raise RuntimeError("backend='ray' needs the optional extra: pip install 'activetouch[ray]'") from e
-    ray.init(ignore_reinit_error=True, num_cpus=workers or None)
-    remote = ray.remote(_run_job)
-    ray.get([remote.remote(c, d) for c, d in jobs])
+        raise ValueError("backend='ray' needs the optional extra: pip install 'activetouch[ray]'") from e
+    started = not ray.is_initialized()
+    if started:
+        if address is not None:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    try:
+        remote = ray.remote(num_cpus=1, max_retries=retries)(_run_job)
+        pending = [remote.remote(c, d) for c, d in jobs]
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            ray.get(done)  # re-raises an episode's error (after its retries) here
+            if bar is not None:
+                bar.update(len(done))
+    finally:
+        if started:
+            ray.shutdown()
 
 
 def steps_of(out_dir: str | Path) -> list[dict[str, str]]:
