@@ -171,3 +171,16 @@ def test_a_target_pushed_out_of_sight_is_reported_not_silent():
         est.observe(feats, env._info(), None, torch.Generator())
     assert isinstance(action, StopAction) and "in no view" in action.reason
     assert torch.isfinite(est.belief.state.x).all() and torch.isfinite(est.belief.pose).all()
+
+
+def test_table_prints_clutter_table_i_and_writes_fig6(tmp_path, capsys):
+    from activetouch.cli import main
+    from activetouch.experiments.runner import run_sweep
+
+    run_sweep(["clutter-mustard"], ["tiqf-static", "tiqf-active-vision"], [0], tmp_path,
+              base=EpisodeConfig(figures=False, progress=False, planner={"max_views": 1, "num_views": 4}))
+    assert main(["table", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "Visuo-tactile clutter, Table I" in out and "paper Median" in out
+    assert "| tiqf-static | 1 |" in out and "| tiqf-active-vision | 1 |" in out
+    assert (tmp_path / "fig6.png").stat().st_size > 10_000

@@ -77,6 +77,14 @@ def test_scene_nodes_and_slider(served, episode_dir):
     assert sc.step == 1 and pts.visible
     np.testing.assert_allclose(sc.handles["/object/true"].position, ep.frames[1].true_pose[:3, 3], atol=1e-6)
     assert "adi_mm" in sc.text.content  # steps.csv's metrics of the step
+    # the belief (logged after every update): its heaviest hypothesis is drawn at the logged pose of the step
+    assert {"/belief/estimate", "/belief/particles"} <= set(sc.nodes)
+    est = ep.frames[1].belief_poses
+    assert est is not None and est.shape == (1, 4, 4) and ep.frames[0].belief_poses is not None
+    np.testing.assert_allclose(sc.handles["/belief/estimate"].position, est[0, :3, 3], atol=1e-6)
+    sc.show(0)
+    np.testing.assert_allclose(sc.handles["/belief/estimate"].position, ep.frames[0].belief_poses[0, :3, 3],
+                               atol=1e-6)
 
 
 def test_observation_kinds_of_the_other_families():

@@ -245,6 +245,14 @@ def cmd_table(a) -> int:
     print(f"{len(summaries)} episodes, settings {settings_key(summaries[0]['config'])}: "
           + ", ".join(f"{k}={v}" for k, v in settings.items()))
     print(_tables(summaries))
+    from activetouch.experiments import clutter_plots, clutter_tables
+
+    if any(clutter_tables.is_clutter_summary(s) for s in summaries):  # Fig. 6 of the visuo-tactile paper
+        episodes = {m: rows for m, rows in clutter_plots.load_episode_rows(a.root).items() if rows}
+        if episodes:
+            path = clutter_plots.error_curves_figure(Path(a.root) / "fig6.png", episodes,
+                                                     title=f"Fig. 6: error after each view / touch ({a.root})")
+            print(f"\nFig. 6 (ADI and translation error after each view and touch): {path}")
     return 0
 
 

@@ -50,6 +50,7 @@ COLOURS = {
     "contacts": (240, 140, 20),
     "path": (40, 40, 40),
     "camera": (30, 30, 30),
+    "estimate": (255, 120, 0),  # the belief's heaviest hypothesis
 }
 #: colours of clutter objects 1, 2, ... (cycled)
 CLUTTER_COLOURS = ((90, 160, 220), (230, 170, 60), (120, 190, 120), (200, 110, 160), (160, 130, 90),
@@ -77,6 +78,8 @@ class Frame:
     ee_path: np.ndarray | None  # (K, 3)
     camera: tuple[np.ndarray, np.ndarray, float, float] | None  # position, look-at, fov_y (rad), aspect
     metrics: dict[str, float]
+    belief_poses: np.ndarray | None = None  # (P, 4, 4) the belief after this step's update
+    belief_weights: np.ndarray | None = None  # (P,)
 
 
 @dataclasses.dataclass
@@ -187,18 +190,22 @@ def load_episode(path: str | Path) -> Episode:
         folder = log.path.parent
         metrics = _metrics(folder)
         reset = log.reset()
-        records = [(0, None, reset["obs"], reset["info"])]
-        records += [(int(s["step"]), s["action"], s["obs"], s["info"]) for s in log.steps()]
+        records = [(0, None, reset["obs"], reset["info"], reset.get("belief"))]
+        records += [(int(s["step"]), s["action"], s["obs"], s["info"], s.get("belief")) for s in log.steps()]
         task, method, seed = str(log.meta.get("task")), str(log.meta.get("method")), int(log.meta.get("seed", 0))
     frames = []
-    for k, action, obs, info in records:
+    for k, action, obs, info, belief in records:
         info = info if isinstance(info, dict) else {}
         pts, ee_pose, ee_path, cam = _observation(obs, info)
         op = info.get("object_poses")
+        bp = bw = None
+        if isinstance(belief, dict) and belief.get("poses") is not None:
+            bp, bw = _np(belief["poses"]).reshape(-1, 4, 4), _np(belief["weights"]).reshape(-1)
         frames.append(Frame(step=k, action=str(info.get("action") or _action_name(action)),
                             true_pose=_np(info["true_pose"]).reshape(4, 4),
                             object_poses=None if op is None else _np(op).reshape(-1, 4, 4),
-                            points=pts, ee_pose=ee_pose, ee_path=ee_path, camera=cam, metrics=metrics.get(k, {})))
+                            points=pts, ee_pose=ee_pose, ee_path=ee_path, camera=cam, metrics=metrics.get(k, {}),
+                            belief_poses=bp, belief_weights=bw))
     info0 = records[0][3] if isinstance(records[0][3], dict) else {}
     return Episode(path=folder, task=task, method=method, seed=seed, target=_target_name(task, info0),
                    object_names=tuple(str(n) for n in (info0.get("object_names") or ())), frames=frames)
@@ -314,6 +321,16 @@ class EpisodeScene:
                 names.append(n)
         if any(fr.ee_pose is not None for fr in episode.frames):
             self._add("/robot/ee", sc.add_frame("/robot/ee", axes_length=0.05, axes_radius=0.003))
+        # the belief: the heaviest hypothesis as the object mesh (orange) and every hypothesis's object centre as a
+        # point coloured by its weight (dark: light, yellow: heavy); updated by the slider
+        self._centre_local = np.asarray(target.bounds, np.float64).mean(0) if hasattr(target, "bounds") else np.zeros(3)
+        if any(fr.belief_poses is not None for fr in episode.frames):
+            fb = next(fr for fr in episode.frames if fr.belief_poses is not None)
+            self._add_mesh("/belief/estimate", target, COLOURS["estimate"], fb.belief_poses[int(np.argmax(fb.belief_weights))])
+            self.handles["/belief/estimate"].opacity = 0.55
+            c, col = self._particles(fb)
+            self._add("/belief/particles", sc.add_point_cloud("/belief/particles", points=c, colors=col,
+                                                              point_size=0.006, point_shape="circle"))
 
         radius = float(np.linalg.norm(target.extents)) if hasattr(target, "extents") else 0.3
         dist = max(0.35, 2.0 * radius)
@@ -332,6 +349,18 @@ class EpisodeScene:
         self.free.on_update(lambda _event: self.show(self.step))
         self.step = -1
         self.show(T)
+
+    def _particles(self, fr: Frame) -> tuple[np.ndarray, np.ndarray]:
+        """Object centres ``(P, 3)`` of the belief's hypotheses and their colours ``(P, 3)`` by weight (viridis)."""
+        import matplotlib
+
+        P = fr.belief_poses
+        c = P[:, :3, :3] @ self._centre_local + P[:, :3, 3]
+        w = fr.belief_weights
+        span = float(w.max() - w.min())
+        x = (w - w.min()) / span if span > 0 else np.ones_like(w)
+        col = (np.asarray(matplotlib.colormaps["viridis"](x))[:, :3] * 255).astype(np.uint8)
+        return c.astype(np.float32), col
 
     @staticmethod
     def _size(kind: str, current: bool) -> float:
@@ -376,6 +405,14 @@ class EpisodeScene:
                         h.point_size = self._size(kind, step == fr.step)
                         if kind == "free" and not self.free.value:
                             h.visible = False
+            fb = next((f for f in reversed(self.episode.frames) if f.step <= fr.step and f.belief_poses is not None),
+                      None)
+            if fb is not None and "/belief/estimate" in self.handles:
+                h = self.handles["/belief/estimate"]
+                h.wxyz, h.position = _wxyz_pos(fb.belief_poses[int(np.argmax(fb.belief_weights))])
+                c, col = self._particles(fb)
+                h = self.handles["/belief/particles"]
+                h.points, h.colors = c, col
             ee = next((f.ee_pose for f in reversed(self.episode.frames) if f.step <= fr.step and f.ee_pose is not None),
                       None)
             if "/robot/ee" in self.handles:

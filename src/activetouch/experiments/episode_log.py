@@ -406,8 +406,22 @@ class EpisodeLogWriter:
         """What the step's update starts from (call right before ``est.observe``): RNG states and the time."""
         return {"rng": rng_state(generator), "t_wall": time.time(), "t_episode": time.perf_counter() - self.t0}
 
-    def step(self, t: int, action, obs, info, ee_before, captured: dict[str, Any], planner: dict | None = None):
-        """Append step ``t``: the executed ``action``, what it observed, ``ee_before`` and the planner's fields."""
+    def reset_belief(self, belief: dict | None) -> None:
+        """The belief after the initialisation (``{"poses": (P, 4, 4), "weights": (P,)}``), for viewers."""
+        if belief is None:
+            return
+        h5py = _h5py()
+        with h5py.File(self.path, "a") as f:
+            if "belief" in f["reset"]:
+                del f["reset"]["belief"]
+            encode(f["reset"], "belief", belief)
+            f.flush()
+
+    def step(self, t: int, action, obs, info, ee_before, captured: dict[str, Any], planner: dict | None = None,
+             belief: dict | None = None):
+        """Append step ``t``: the executed ``action``, what it observed, ``ee_before``, the planner's fields and the
+        belief after the update (``{"poses": (P, 4, 4), "weights": (P,)}``: what a viewer draws; replay recomputes
+        it)."""
         h5py = _h5py()
         with h5py.File(self.path, "a") as f:
             steps = f["steps"]
@@ -421,6 +435,8 @@ class EpisodeLogWriter:
             encode(g, "ee_before", ee_before)
             encode(g, "planner", dict(planner or {}))
             encode(g, "rng", captured["rng"])
+            if belief is not None:
+                encode(g, "belief", belief)
             g.attrs["step"] = int(t)
             g.attrs["t_wall"], g.attrs["t_episode"] = captured["t_wall"], captured["t_episode"]
             g.attrs["written"] = True  # last: a step is finished once this is set
@@ -442,6 +458,9 @@ class _NoLog:
     path = None
 
     def capture(self, generator=None):
+        return None
+
+    def reset_belief(self, belief=None):
         return None
 
     def step(self, *args, **kwargs):
@@ -518,6 +537,7 @@ class EpisodeLog:
     def reset(self) -> dict[str, Any]:
         g = self._f["reset"]
         return {"obs": decode(g["obs"]), "info": decode(g["info"]), "rng": decode(g["rng"]),
+                "belief": decode(g["belief"]) if "belief" in g else None,
                 **{k: g.attrs[k] for k in ("t_wall", "t_episode")}}
 
     def step_names(self) -> list[str]:
@@ -541,7 +561,8 @@ class EpisodeLog:
         g = self._f["steps"][name]
         return {"step": int(g.attrs["step"]), "action": decode(g["action"]), "obs": decode(g["obs"]),
                 "info": decode(g["info"]), "ee_before": decode(g["ee_before"]), "planner": decode(g["planner"]),
-                "rng": decode(g["rng"]), "t_wall": float(g.attrs["t_wall"]), "t_episode": float(g.attrs["t_episode"])}
+                "rng": decode(g["rng"]), "belief": decode(g["belief"]) if "belief" in g else None,
+                "t_wall": float(g.attrs["t_wall"]), "t_episode": float(g.attrs["t_episode"])}
 
     def steps(self) -> Iterator[dict[str, Any]]:
         for n in self.step_names():

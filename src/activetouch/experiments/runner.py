@@ -176,6 +176,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
     obs, info = env.reset(seed=cfg.seed)
     elog = open_episode_log(out, cfg, obs, info, gen)  # episode.h5: the reset, then every step (episode_log)
     counts = est.initialise(task, obs, info, gen)
+    elog.reset_belief(_belief_record(est))
     planner.reset()
 
     snapshots: dict[str, Any] = {}
@@ -214,7 +215,8 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
             t2 = time.perf_counter()
             fields = est.observe(obs, info, ee_before, gen)  # lines 10-20
             t3 = time.perf_counter()
-            elog.step(t, u, obs, info, ee_before, logged, timings)  # appended, flushed and closed per step
+            elog.step(t, u, obs, info, ee_before, logged, timings,  # appended, flushed and closed per step
+                      belief=_belief_record(est))
             m = est.metrics(info)
             row = {"step": t, **m, **fields, "in_contact": in_contact,
                    "plan_s": t1 - t0, "update_s": t3 - t2, "step_s": t2 - t1, **timings}
@@ -257,6 +259,12 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
         est.write_figures(out, rows, snapshots, cfg.task, success.get("nll_threshold"))
     write_json_atomic(out / "summary.json", summary)
     return summary
+
+
+def _belief_record(est) -> dict[str, Any]:
+    """The belief for the episode log's viewers: ``poses (P, 4, 4)`` and ``weights (P,)`` (float32, CPU)."""
+    return {"poses": est.poses.detach().to("cpu", torch.float32).clone(),
+            "weights": est.weights.detach().to("cpu", torch.float32).clone()}
 
 
 def _max_steps(env) -> int:
