@@ -171,3 +171,15 @@ register_method("tiqf-visuo-tactile", "Table I (d), the paper's method: declutte
                                       "touches (Eq. 25)", belief="tiqf",
                 requires=("view-actions", "segmentation", "push-actions", "pick-actions", "touch-actions",
                           "tactile-points"), quick=QUICK_CLUTTER)(_clutter(declutter=True, active_vision=True, touch=True))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Mixed methods: a belief of one paper with a planner of another (issue 11)
+
+@register_method("tiqf-slide", "mixed: the visuo-tactile paper's TIQF (a Gaussian over the pose, registered to the "
+                               "camera and pad surface points, moved by the observed object motion) with RUMI's Slide "
+                               "baseline on the rummaging tasks", belief="tiqf", requires=("ee-delta-actions",))
+def make_tiqf_slide(env, belief_config, seed, **overrides):
+    from activetouch.planning.slide import SlidePlanner
+
+    return SlidePlanner.from_env(env, belief_config, seed, **overrides)

@@ -14,7 +14,8 @@ import torch
 from activetouch.registry import TaskEntry, register_task
 
 #: What a RUMI rummaging environment provides (``sim.RummageEnv``).
-RUMMAGE_PROVIDES = frozenset({"points", "contact", "object-motion", "ee-delta-actions", "reachability"})
+RUMMAGE_PROVIDES = frozenset({"points", "target-points", "contact", "object-motion", "ee-delta-actions",
+                              "reachability"})
 
 
 def _as_tensor(x, device) -> torch.Tensor:

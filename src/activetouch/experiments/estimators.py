@@ -380,6 +380,35 @@ class TiqfBelief:
     def pose(self) -> torch.Tensor:
         return self.state.pose
 
+    @property
+    def poses(self) -> torch.Tensor:
+        """The estimate as a one-hypothesis particle set ``(1, 4, 4)`` (for planners written for particles)."""
+        return self.pose.to(torch.float32)[None]
+
+    @property
+    def weights(self) -> torch.Tensor:
+        return torch.ones(1)
+
+
+def _quat_left(q: torch.Tensor) -> torch.Tensor:
+    """``L(q) (4, 4)`` with ``q (x) p = L(q) p`` (Hamilton product, ``(w, x, y, z)``)."""
+    w, x, y, z = q.unbind()
+    return torch.stack([torch.stack([w, -x, -y, -z]), torch.stack([x, w, -z, y]),
+                        torch.stack([y, z, w, -x]), torch.stack([z, -y, x, w])])
+
+
+def move_state(state, dT: torch.Tensor):
+    """The TIQF posterior of an object that moved by the world-frame rigid motion ``dT (4, 4)`` (``T' = dT T``):
+    the mean ``x' = q(dT) (x) x`` with its covariance ``L Sigma L^T`` (``L`` orthogonal), ``t' = R t + t_dT``."""
+    from activetouch.belief.tiqf import TIQFState, _matrix_to_quat
+
+    dT = dT.to(state.x)
+    q = _matrix_to_quat(dT[:3, :3])
+    q = q / torch.linalg.vector_norm(q)
+    L = _quat_left(q)
+    return TIQFState(x=L @ state.x, Sigma=L @ state.Sigma @ L.T, t=dT[:3, :3] @ state.t + dT[:3, 3],
+                     iterations=state.iterations, converged=state.converged)
+
 
 class TiqfEstimator:
     """The visuo-tactile paper's estimator (Sec. II-C): a Gaussian over the target's rotation quaternion plus the
@@ -437,12 +466,32 @@ class TiqfEstimator:
     def initialise(self, task, obs, info, generator) -> dict[str, Any]:
         from activetouch.belief.tiqf import initial_state
 
-        prior = task.prior(self.env, 1, generator, self.device, obs=obs, info=info)
+        feats = getattr(obs, "features", None)  # a RUMI task: labelled point features, not a clutter view
+        prior = task.prior(self.env, 1, generator, self.device, obs=obs, info=info, features=feats)
         state = initial_state(prior[0].double(), self.config)
         pts = self.obj.sample_surface(self.extra["model_points"], seed=0).double()
         self.belief = TiqfBelief(self.obj, state, pts, self.config)
         self.features = obs
-        return {"action": "reset", "n_visual": 0, "n_tactile": 0}
+        if feats is not None:  # X_0's surface points (camera) are the first visual cloud
+            self.features = feats
+            self._rummage_points(feats)
+        return {"action": "reset", "n_visual": len(self.belief.visual), "n_tactile": 0}
+
+    def _rummage_points(self, feats) -> dict[str, Any]:
+        """Add a RUMI observation's surface points (camera and pads: the object's own, segmented points) to the
+        visual cloud and register it (from the carried-over posterior)."""
+        from activetouch.belief.tiqf import register
+        from activetouch.observations import voxel_representatives
+
+        b = self.belief
+        surf = feats.surface.positions.detach().to("cpu", torch.float64)
+        if len(surf):
+            allpts = torch.cat([b.visual, surf])
+            b.visual = allpts[voxel_representatives(allpts, float(self.extra["voxel"]))]
+        if len(b.visual) >= 3:
+            _, b.state, tinfo = register(b.model_points, b.visual, b.state, self.config)
+            return {"tiqf_iterations": tinfo["iterations"], "tiqf_converged": bool(tinfo["converged"])}
+        return {}
 
     def observe(self, obs, info, ee_before, generator) -> dict[str, Any]:
         from activetouch.belief.tiqf import register
@@ -450,8 +499,10 @@ class TiqfEstimator:
         from activetouch.observations import voxel_representatives
 
         b = self.belief
-        self.features = obs
         prev = b.pose.clone()
+        if not hasattr(obs, "kind") and hasattr(obs, "features"):  # a RUMI task's observation
+            return self._observe_rummage(obs, prev)
+        self.features = obs
         row: dict[str, Any] = {"action": obs.kind, "action_success": bool(obs.success),
                                "contact_label": int(getattr(obs, "contact_label", -1))}
         pts = torch.as_tensor(np.asarray(obs.points, dtype=np.float64).reshape(-1, 3))
@@ -480,6 +531,28 @@ class TiqfEstimator:
                    pose_change_deg=math.degrees(float(rotation_error(b.pose, prev))))
         return row
 
+    def _observe_rummage(self, obs, prev: torch.Tensor) -> dict[str, Any]:
+        """A RUMI step: the observed object motion ``dT`` moves the posterior and the object-fixed cloud (as RUMI's
+        Alg. 1 line 11-13 moves particles and features), then the new surface points are registered."""
+        from activetouch.experiments.metrics import rotation_error, translation_error
+
+        b = self.belief
+        row: dict[str, Any] = {"action": "rummage", "action_success": bool(obs.in_contact)}
+        dT = obs.dT
+        if dT is not None:
+            dT = torch.as_tensor(dT, dtype=torch.float64)
+            if _is_motion(dT, self.cfg.motion_tol_m, self.cfg.motion_tol_rad):
+                b.state = move_state(b.state, dT)
+                b.visual = b.visual @ dT[:3, :3].T + dT[:3, 3]
+        # (with observe_dT=False the motion is not known: the cloud stays where it was seen)
+        row.update(self._rummage_points(obs.features))
+        self.features = obs.features
+        b.history.append(b.pose.clone())
+        row.update(n_visual=len(b.visual), n_tactile=0,
+                   pose_change_mm=1000 * float(translation_error(b.pose, prev)),
+                   pose_change_deg=math.degrees(float(rotation_error(b.pose, prev))))
+        return row
+
     @staticmethod
     def _touch_residual(b: "TiqfBelief") -> float:
         """Median distance (m) of the tactile points to the model at the current estimate."""
@@ -497,8 +570,12 @@ class TiqfEstimator:
         te = float(M.translation_error(est, T))
         re = math.degrees(float(M.rotation_error(est, T)))
         self._last_info = info
-        return {"adi_mm": 1000 * adi, "trans_err": te, "trans_err_mm": 1000 * te, "rot_err_deg": re,
-                "mean_rot_err_deg": re, "active_share": 1.0, "sigma_trace": float(torch.trace(self.belief.state.Sigma))}
+        out = {"adi_mm": 1000 * adi, "trans_err": te, "trans_err_mm": 1000 * te, "rot_err_deg": re,
+               "mean_rot_err_deg": re, "active_share": 1.0, "sigma_trace": float(torch.trace(self.belief.state.Sigma))}
+        if hasattr(getattr(self.env, "spec", None), "nll_threshold"):  # a RUMI task: its NLL (Eq. 36) and APC too
+            m = pose_metrics(self.obj, self.poses, self.weights, info["true_pose"])
+            out.update(nll=m["nll"], apc=m["apc"])
+        return out
 
     def converged(self) -> bool:
         return False  # the planner ends the episode (NBV / NBT stop rules, Sec. II-D)
