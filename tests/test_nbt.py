@@ -9,7 +9,6 @@ algebra through tiqf.kalman_update, and its ranking against the per-candidate TI
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -336,19 +335,15 @@ def test_gain_perpendicular_face_beats_same_face(one_face_scene, prediction):
     assert torch.allclose(g2, gains, rtol=1e-6, atol=1e-9)
 
 
-@pytest.mark.parametrize("prediction,max_s", [("kalman", 0.5), ("register", 1.5)])
-def test_select_next_best_touch_monte_carlo_faces_and_runtime(one_face_scene, prediction, max_s):
+@pytest.mark.parametrize("prediction", ["kalman", "register"])
+def test_select_next_best_touch_monte_carlo_faces(one_face_scene, prediction):
+    """Speed is a benchmark (``activetouch bench nbt``), not asserted here: timed tests fail on loaded machines."""
     sc = one_face_scene
     obj, state = sc["obj"], sc["state"]
     cands = touch_candidates(state.pose, sc["lo"], sc["hi"], NBTConfig(rays_per_face=20), torch.Generator().manual_seed(1))
     assert len(cands) == 100
     args = (sc["model"], obj.mesh.vertices, obj.mesh.faces, state, sc["touched"], cands, sc["cfg"])
-    select_next_best_touch(*args, prediction=prediction)  # warm-up (open3d, first register)
-    t0 = time.perf_counter()
     idx, gains = select_next_best_touch(*args, prediction=prediction)
-    elapsed = time.perf_counter() - t0
-    # measured ~0.26 s (register) and ~5 ms (kalman, mostly the ray casting); loose bounds for a loaded machine
-    assert elapsed < max_s, f"NBT selection ({prediction}) of 100 candidates (K = 10) took {elapsed:.2f} s"
     hit = torch.isfinite(gains)
     assert int(hit.sum()) >= 90  # the scanned box has dents: a few rays miss the estimate
     assert bool((gains[hit] >= 0).all()) and bool((gains[~hit] == -math.inf).all())
