@@ -8,7 +8,6 @@ in for the robot's collision geometry.
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -166,8 +165,8 @@ def test_distance_far_is_inf_or_large(box):
     assert 0.5 < float(d) < 1.0
 
 
-def test_distance_speed(box):
-    """P = 100, K = 30, M ~ 3,000 in well under a second on one CPU thread (measured ~0.11 s)."""
+def test_distance_of_a_full_batch(box):
+    """P = 100, K = 30, M ~ 3,000 in one batched call, finite (its speed, ~0.11 s, is a benchmark: bench touch-ig)."""
     from activetouch.sim.robot import gripper_points
 
     h, _ = gripper_points(0.0085)
@@ -175,12 +174,11 @@ def test_distance_speed(box):
     g = torch.Generator().manual_seed(0)
     rp = torch.stack([h + torch.tensor([-0.15 + 0.01 * k, 0.0, 0.05]) for k in range(30)])
     st = torch.randn(100, 3, generator=g) * torch.tensor([0.05, 0.05, 0.5])
-    robot_object_distance(box, st[:2], rp[:1])  # warm the SDF cache
-    t = time.perf_counter()
     d = robot_object_distance(box, st, rp)
-    elapsed = time.perf_counter() - t
     assert d.shape == (100, 30) and not bool(torch.isnan(d).any())
-    assert elapsed < 2.0, elapsed
+    # the batch equals per-particle calls
+    for i in (0, 57):
+        assert torch.allclose(d[i], robot_object_distance(box, st[i:i + 1], rp)[0])
 
 
 # ---------------------------------------------------------------------------------------------- updates
