@@ -190,3 +190,29 @@ def test_scene_renders_in_headless_chromium(served, tmp_path):
     assert grey.mean() > 0.002, grey.mean()
     saturated = (px.max(-1) - px.min(-1)) > 60
     assert saturated.mean() > 0.01, saturated.mean()
+
+
+def test_live_viewer_follows_a_running_episode(tmp_path):
+    """``run --view``: the viewer polls the episode's log and rebuilds the scene as steps arrive."""
+    import threading
+
+    from activetouch.experiments.runner import EpisodeConfig, run_episode
+
+    live = viewer.LiveViewer(tmp_path, port=_free_port(), poll_s=0.2)
+    try:
+        assert live.scene is None and not live.refresh()  # nothing logged yet
+        seen = []
+
+        def on_step(t, est, row):  # the runner calls this after each step's update (its log is written then)
+            seen.append(live.refresh())
+
+        th = threading.Thread(target=run_episode, args=(EpisodeConfig(task="clutter-mustard", method="tiqf-static",
+                                                                      seed=0, figures=False, progress=False), tmp_path),
+                              kwargs={"on_step": on_step})
+        th.start()
+        th.join(timeout=120)
+        live.refresh()
+        assert live.scene is not None and live.steps_shown == 2
+        assert "/points/step_1/visual" in live.scene.nodes and "/belief/estimate" in live.scene.nodes
+    finally:
+        live.stop()

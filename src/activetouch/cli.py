@@ -147,8 +147,29 @@ def cmd_run(a) -> int:
     from activetouch.experiments.runner import run_episode
 
     out = Path(a.out or f"runs/{a.task}-{a.method}-seed{a.seed}")
-    s = run_episode(_episode_config(a, a.task, a.seed), out)
-    _print_summary(s, out)
+    cfg = _episode_config(a, a.task, a.seed)
+    live = None
+    if getattr(a, "view", False):  # the 3-D viewer, updated after every step
+        from activetouch.viewer import LiveViewer
+
+        live = LiveViewer(out, port=a.port, host=a.host)
+        print(f"live viewer at {live.url}", flush=True)
+    try:
+        s = run_episode(cfg, out)
+        _print_summary(s, out)
+        if live is not None:
+            import time
+
+            live.refresh()
+            print(f"the viewer stays at {live.url} (Ctrl-C to stop)", flush=True)
+            try:
+                while True:
+                    time.sleep(1.0)
+            except KeyboardInterrupt:
+                pass
+    finally:
+        if live is not None:
+            live.stop()
     return 0
 
 
@@ -386,6 +407,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("task")
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--out", default=None, help="output folder (default runs/TASK-METHOD-seedS)")
+    r.add_argument("--view", action="store_true", help="serve the 3-D viewer, updated after every step (viser)")
+    r.add_argument("--port", type=int, default=8080, help="the viewer's port (with --view)")
+    r.add_argument("--host", default="127.0.0.1", help="the viewer's host (with --view)")
     _episode_args(r)
     r.set_defaults(func=cmd_run)
 

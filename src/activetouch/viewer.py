@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import logging
 import math
 import time
 from pathlib import Path
@@ -462,3 +463,67 @@ def serve(path: str | Path, port: int = 8080, host: str = "127.0.0.1", block: bo
         finally:
             server.stop()
     return server
+
+
+class LiveViewer:
+    """The viewer of an episode that is still running (``activetouch run ... --view``): a thread polls the episode
+    folder's ``episode.h5`` every ``poll_s`` seconds and rebuilds the scene whenever a step was added (the slider
+    jumps to the newest step). Reads that meet the writer mid-step are retried at the next poll."""
+
+    def __init__(self, folder: str | Path, port: int = 8080, host: str = "127.0.0.1", poll_s: float = 1.0):
+        import threading
+
+        viser = _viser()
+        self.folder = Path(folder)
+        self.server = viser.ViserServer(host=host, port=port, label="activetouch (live)", verbose=False)
+        self.server.gui.add_markdown(f"waiting for the first step of {self.folder} ...")
+        self.poll_s = float(poll_s)
+        self.steps_shown = -1
+        self.scene: EpisodeScene | None = None
+        self._stop = threading.Event()
+        self._lock = threading.Lock()  # one rebuild at a time (the polling thread and callers of refresh)
+        self._thread = threading.Thread(target=self._run, name="activetouch-live-viewer", daemon=True)
+        self._thread.start()
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.server.get_host()}:{self.server.get_port()}"
+
+    def refresh(self) -> bool:
+        """Rebuild the scene if the log has new steps; True when it did."""
+        with self._lock:
+            return self._refresh()
+
+    def _refresh(self) -> bool:
+        from activetouch.experiments.episode_log import LOG_NAME
+
+        path = self.folder / LOG_NAME
+        if not path.is_file():
+            return False
+        try:
+            episode = load_episode(path)
+        except (OSError, KeyError, ValueError):  # the writer holds the file (mid-step): next poll
+            return False
+        n = episode.frames[-1].step
+        if n == self.steps_shown:
+            return False
+        if self.scene is not None:  # remove the previous build's nodes one by one (a scene reset would also mark
+            for h in self.scene.handles.values():  # the new nodes of the same names as removed)
+                h.remove()
+        self.server.gui.reset()
+        self.scene = build_scene(self.server, episode)
+        self.steps_shown = n
+        return True
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.refresh()
+            except Exception:  # pragma: no cover - a viewer must not kill the run it watches
+                logging.getLogger(__name__).exception("live viewer refresh failed")
+            self._stop.wait(self.poll_s)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.server.stop()
