@@ -266,6 +266,10 @@ def cmd_table(a) -> int:
     print(f"{len(summaries)} episodes, settings {settings_key(summaries[0]['config'])}: "
           + ", ".join(f"{k}={v}" for k, v in settings.items()))
     print(_tables(summaries))
+    if getattr(a, "grid", False):
+        from activetouch.experiments.grid_table import grid_markdown
+
+        print("\nGrid (every task x method that ran):\n" + grid_markdown(summaries))
     from activetouch.experiments import clutter_plots, clutter_tables
 
     if any(clutter_tables.is_clutter_summary(s) for s in summaries):  # Fig. 6 of the visuo-tactile paper
@@ -440,6 +444,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("table", help="table of finished episodes under a folder, next to the paper's")
     t.add_argument("root")
+    t.add_argument("--grid", action="store_true", help="also the one-row-per-(task, method) grid table")
     t.set_defaults(func=cmd_table)
 
     rp = sub.add_parser("report", help="Tables V, VI, VII (CSV + Markdown) and Fig. 16 curves of a finished sweep")

@@ -141,6 +141,18 @@ def make_tiqf_belief(env, cfg, device):
     return TiqfEstimator(env, cfg, device)
 
 
+@register_belief("tiqf-verify", "TIQF whose touches verify the views: after each touch, the visual and tactile points "
+                                "are registered together when the touches lie on the surface of the estimate the views "
+                                "gave (median within 4 mm), else the tactile points alone (touch_cloud=verify)",
+                 requires=("target-points",))
+def make_tiqf_verify_belief(env, cfg, device):
+    from dataclasses import replace
+
+    from activetouch.experiments.estimators import TiqfEstimator
+
+    return TiqfEstimator(env, replace(cfg, belief={"touch_cloud": "verify", **cfg.belief}), device)
+
+
 #: Smoke-run budgets (the contract test): few candidates, few actions.
 QUICK_CLUTTER = {"num_views": 4, "rays_per_face": 3, "max_declutter": 1, "max_views": 1, "max_touches": 1}
 
@@ -169,6 +181,10 @@ register_method("tiqf-declutter-vision", "Table I (c), active vision after declu
                 quick=QUICK_CLUTTER)(_clutter(declutter=True, active_vision=True, touch=False))
 register_method("tiqf-visuo-tactile", "Table I (d), the paper's method: decluttering, next best views, then next best "
                                       "touches (Eq. 25)", belief="tiqf",
+                requires=("view-actions", "segmentation", "push-actions", "pick-actions", "touch-actions",
+                          "tactile-points"), quick=QUICK_CLUTTER)(_clutter(declutter=True, active_vision=True, touch=True))
+register_method("tiqf-visuo-tactile-verify", "beyond the paper: Table I (d) whose touches verify the visual estimate "
+                                             "(belief tiqf-verify) instead of replacing it", belief="tiqf-verify",
                 requires=("view-actions", "segmentation", "push-actions", "pick-actions", "touch-actions",
                           "tactile-points"), quick=QUICK_CLUTTER)(_clutter(declutter=True, active_vision=True, touch=True))
 

@@ -16,7 +16,8 @@ PAPER_TABLE_I = {
 }
 METHOD_ORDER = tuple(PAPER_TABLE_I)
 LABELS = {"tiqf-static": "static vision", "tiqf-active-vision": "active vision, no decluttering",
-          "tiqf-declutter-vision": "active vision, decluttered", "tiqf-visuo-tactile": "visuo-tactile, decluttered"}
+          "tiqf-declutter-vision": "active vision, decluttered", "tiqf-visuo-tactile": "visuo-tactile, decluttered",
+          "tiqf-visuo-tactile-verify": "visuo-tactile, touches verify vision"}
 
 
 def is_clutter_summary(s: dict[str, Any]) -> bool:

@@ -375,6 +375,7 @@ class TiqfBelief:
         self.visual = torch.zeros(0, 3, dtype=torch.float64)
         self.tactile = torch.zeros(0, 3, dtype=torch.float64)
         self.history: list[torch.Tensor] = [state.pose.clone()]  # the pose after every acquisition
+        self.visual_pose: torch.Tensor | None = None  # the estimate just before the first touch
 
     @property
     def pose(self) -> torch.Tensor:
@@ -419,8 +420,8 @@ class TiqfEstimator:
     Belief settings (``--belief KEY=VALUE``): ``TIQFConfig`` fields, plus ``model_points`` (model cloud size,
     default 2000), ``voxel`` (the visual cloud's voxel size, default 0.005 m) and ``touch_cloud``
     (``tactile``: register the tactile points alone, as the paper; ``visuo-tactile``: tactile and visual together;
-    ``verify``: together while the touches lie within ``verify_tol`` (default 4 mm, median) of the current estimate's
-    surface, else tactile alone: the touches verify the visual estimate or replace it).
+    ``verify``: together when the touches lie within ``verify_tol`` (default 4 mm, median) of the surface at the
+    estimate the views gave, else tactile alone: the touches verify the visual estimate or replace it).
     """
 
     FIGURES = ("tiqf.png", "declutter.png", "views.png")
@@ -515,10 +516,12 @@ class TiqfEstimator:
             b.visual = allpts[voxel_representatives(allpts, float(self.extra["voxel"]))]
             cloud = b.visual
         elif obs.kind == "touch" and len(pts):
+            if b.visual_pose is None:  # the estimate the views gave, before any touch moved it
+                b.visual_pose = b.pose.clone()
             b.tactile = torch.cat([b.tactile, pts])
             if len(b.tactile) >= 3:
                 mode = self.extra["touch_cloud"]
-                if mode == "verify":  # "correct and verify": keep the visual points while the touches agree with them
+                if mode == "verify":  # "correct and verify": keep the visual points if the touches agree with them
                     mode = "visuo-tactile" if self._touch_residual(b) < float(self.extra["verify_tol"]) else "tactile"
                     row["touch_cloud"] = mode
                 cloud = b.tactile if mode == "tactile" else torch.cat([b.tactile, b.visual])
@@ -555,8 +558,9 @@ class TiqfEstimator:
 
     @staticmethod
     def _touch_residual(b: "TiqfBelief") -> float:
-        """Median distance (m) of the tactile points to the model at the current estimate."""
-        T = b.pose.double()
+        """Median distance (m) of the tactile points to the model at the visual estimate (the pose before the first
+        touch): whether touch and vision agree."""
+        T = (b.visual_pose if b.visual_pose is not None else b.pose).double()
         local = (b.tactile - T[:3, 3]) @ T[:3, :3]
         return float(torch.cdist(local, b.model_points).min(dim=1).values.median())
 
