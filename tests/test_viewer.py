@@ -206,11 +206,20 @@ def test_live_viewer_follows_a_running_episode(tmp_path):
         def on_step(t, est, row):  # the runner calls this after each step's update (its log is written then)
             seen.append(live.refresh())
 
-        th = threading.Thread(target=run_episode, args=(EpisodeConfig(task="clutter-mustard", method="tiqf-static",
-                                                                      seed=0, figures=False, progress=False), tmp_path),
-                              kwargs={"on_step": on_step})
+        errors = []
+
+        def run():  # the viewer reads the log while the run writes it: the run must not fail
+            try:
+                run_episode(EpisodeConfig(task="clutter-mustard", method="tiqf-static", seed=0, figures=False,
+                                          progress=False), tmp_path, on_step=on_step)
+            except BaseException as e:  # noqa: BLE001 - reported below
+                errors.append(e)
+
+        th = threading.Thread(target=run)
         th.start()
         th.join(timeout=120)
+        assert not errors, errors
+        assert (tmp_path / "summary.json").is_file()
         live.refresh()
         assert live.scene is not None and live.steps_shown == 2
         assert "/points/step_1/visual" in live.scene.nodes and "/belief/estimate" in live.scene.nodes

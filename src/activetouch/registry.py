@@ -35,6 +35,13 @@ Kinds used by the built-in tasks (a task may add its own):
 ``physics-rollout``    object hypotheses can be rolled out in the simulator under the executed motion
 ``poke-actions``       actions are via-point trajectories (touch paper App. C)
 ``grasp``              a grasp primitive ends the episode and is scored (touch paper App. D-d)
+``target-points``      segmented world points on the target object (camera, pads; the TIQF belief's input)
+``segmentation``       per-pixel object labels of every view (the declutter graph)
+``tactile-points``     contact points on the target from guarded touches
+``view-actions``       the camera can be moved (next best view)
+``touch-actions``      guarded touches along a ray (next best touch)
+``push-actions``       straight pushes of an object (decluttering)
+``pick-actions``       grasps that place an object outside the workspace (decluttering)
 =====================  ===================================================================================
 """
 from __future__ import annotations

@@ -183,12 +183,13 @@ def _metrics(folder: Path) -> dict[int, dict[str, float]]:
     return out
 
 
-def load_episode(path: str | Path) -> Episode:
-    """The frames of a recorded episode (a folder with ``episode.h5``, or the file); ValueError otherwise."""
+def load_episode(path: str | Path, folder: str | Path | None = None) -> Episode:
+    """The frames of a recorded episode (a folder with ``episode.h5``, or the file); ValueError otherwise.
+    ``folder``: where its ``steps.csv`` lies (default: beside the log)."""
     from activetouch.experiments.episode_log import read_log
 
     with read_log(path) as log:
-        folder = log.path.parent
+        folder = Path(folder) if folder is not None else log.path.parent
         metrics = _metrics(folder)
         reset = log.reset()
         records = [(0, None, reset["obs"], reset["info"], reset.get("belief"))]
@@ -500,10 +501,17 @@ class LiveViewer:
         path = self.folder / LOG_NAME
         if not path.is_file():
             return False
-        try:
-            episode = load_episode(path)
-        except (OSError, KeyError, ValueError):  # the writer holds the file (mid-step): next poll
-            return False
+        import shutil
+        import tempfile
+
+        # read a byte copy, never the log itself: an HDF5 reader holding the file would make the run's writer fail
+        with tempfile.TemporaryDirectory() as tmp:
+            copy = Path(tmp) / LOG_NAME
+            try:
+                shutil.copyfile(path, copy)
+                episode = load_episode(copy, folder=self.folder)
+            except (OSError, KeyError, ValueError):  # copied mid-step (the writer was appending): next poll
+                return False
         n = episode.frames[-1].step
         if n == self.steps_shown:
             return False

@@ -69,6 +69,19 @@ def _h5py():
     return h5py
 
 
+def _open_for_append(path: Path, attempts: int = 40, wait_s: float = 0.05):
+    """``h5py.File(path, "a")``, retried for about 2 s while another reader holds the file (HDF5 refuses a writer
+    then): a viewer reading the log must delay the run, never end it."""
+    h5py = _h5py()
+    for k in range(attempts):
+        try:
+            return h5py.File(path, "a")
+        except OSError:
+            if k == attempts - 1:
+                raise
+            time.sleep(wait_s)
+
+
 # ---------------------------------------------------------------------------------------------- serialiser
 def _class_name(cls: type) -> str:
     return f"{cls.__module__}:{cls.__qualname__}"
@@ -410,8 +423,7 @@ class EpisodeLogWriter:
         """The belief after the initialisation (``{"poses": (P, 4, 4), "weights": (P,)}``), for viewers."""
         if belief is None:
             return
-        h5py = _h5py()
-        with h5py.File(self.path, "a") as f:
+        with _open_for_append(self.path) as f:
             if "belief" in f["reset"]:
                 del f["reset"]["belief"]
             encode(f["reset"], "belief", belief)
@@ -422,8 +434,7 @@ class EpisodeLogWriter:
         """Append step ``t``: the executed ``action``, what it observed, ``ee_before``, the planner's fields and the
         belief after the update (``{"poses": (P, 4, 4), "weights": (P,)}``: what a viewer draws; replay recomputes
         it)."""
-        h5py = _h5py()
-        with h5py.File(self.path, "a") as f:
+        with _open_for_append(self.path) as f:
             steps = f["steps"]
             name = f"{int(t):06d}"
             if name in steps:
@@ -445,8 +456,7 @@ class EpisodeLogWriter:
         self.steps = int(t)
 
     def close(self) -> None:
-        h5py = _h5py()
-        with h5py.File(self.path, "a") as f:
+        with _open_for_append(self.path) as f:
             f.attrs["complete"] = True
             f.attrs["steps"] = self.steps
             f.attrs["wall_s"] = time.perf_counter() - self.t0
