@@ -158,15 +158,11 @@ def cmd_run(a) -> int:
         s = run_episode(cfg, out)
         _print_summary(s, out)
         if live is not None:
-            import time
+            from activetouch.viewer import wait_for_interrupt
 
             live.refresh()
             print(f"the viewer stays at {live.url} (Ctrl-C to stop)", flush=True)
-            try:
-                while True:
-                    time.sleep(1.0)
-            except KeyboardInterrupt:
-                pass
+            wait_for_interrupt()
     finally:
         if live is not None:
             live.stop()
@@ -379,8 +375,6 @@ def cmd_bench(a) -> int:
 
 
 def cmd_view(a) -> int:
-    import time
-
     from activetouch.experiments.episode_log import LOG_NAME
 
     folder = Path(a.dir)
@@ -392,10 +386,7 @@ def cmd_view(a) -> int:
     server = viewer.serve(log_file, port=a.port, host=a.host, block=False)
     print(f"viewer of {log_file} at http://{a.host}:{server.get_port()} (Ctrl-C to stop)", flush=True)
     try:
-        while True:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        pass
+        viewer.wait_for_interrupt()
     finally:
         server.stop()
     return 0

@@ -457,13 +457,19 @@ def serve(path: str | Path, port: int = 8080, host: str = "127.0.0.1", block: bo
         raise
     if block:
         try:
-            while True:
-                time.sleep(1.0)
-        except KeyboardInterrupt:
-            pass
+            wait_for_interrupt()
         finally:
             server.stop()
     return server
+
+
+def wait_for_interrupt() -> None:
+    """Sleep until Ctrl-C (a served viewer stays up meanwhile)."""
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
 
 
 class LiveViewer:

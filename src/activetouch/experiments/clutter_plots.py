@@ -19,6 +19,16 @@ def _plt():
     return plt
 
 
+def _save(fig, path, dpi: int = 110, tight: bool = True) -> Path:
+    """Lay out (``tight_layout``), write and close a figure; returns ``Path(path)``."""
+    plt = _plt()
+    if tight:
+        fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return Path(path)
+
+
 def _posed(points: np.ndarray, T: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 
@@ -77,10 +87,7 @@ def tiqf_figure(path: Path, env, belief, rows: list[dict], title: str = "") -> P
     ax_err.legend(handles, list(ACTION_COLOURS), loc="lower left", fontsize=7, ncol=3)
     ax_err.set_title("error after each action (Fig. 6)")
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -252,10 +259,7 @@ def declutter_figure(path: Path, seg, decision=None, names: Sequence[str] | None
     ax.set_title(_decision_caption(decision, names), fontsize=10)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path, dpi=120)
 
 
 #: Most panels of :func:`declutter_sequence_figure`.
@@ -298,10 +302,7 @@ def declutter_sequence_figure(path: Path, items: Sequence, names: Sequence[str] 
     if len(chosen) < n:
         sup += f" ({len(chosen)} of {n} decisions shown)"
     fig.suptitle(sup)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -452,10 +453,7 @@ def views_figure(path: Path, grid, centroid, view_positions, candidate_positions
     ax_h.grid(alpha=0.3)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -606,9 +604,7 @@ def error_curves_figure(path: Path, episodes: Mapping[str, Sequence[Sequence[Map
     if title:
         fig.suptitle(title)
     fig.subplots_adjust(left=0.06, right=0.985, bottom=0.11, top=0.88 if title else 0.92, wspace=0.16)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path, tight=False)
 
 
 def load_episode_rows(root, task: str | Sequence[str] | None = None) -> dict[str, list[list[dict]]]:

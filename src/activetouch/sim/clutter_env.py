@@ -68,6 +68,14 @@ def _vec(x, n: int, name: str) -> np.ndarray:
     return a
 
 
+def _unit(x, name: str) -> np.ndarray:
+    """``x`` as a finite unit 3-vector (within 1e-3), else a ValueError naming ``name``."""
+    d = _vec(x, 3, name)
+    if abs(np.linalg.norm(d) - 1.0) > 1e-3:
+        raise ValueError(f"{name} must be a unit vector, got norm {np.linalg.norm(d):.4f}")
+    return d
+
+
 @dataclasses.dataclass(frozen=True)
 class ViewAction:
     """Take a depth image from ``position (3,)`` looking at ``look_at (3,)`` (world, m)."""
@@ -91,9 +99,7 @@ class TouchAction:
 
     def __post_init__(self):
         _vec(self.start, 3, "TouchAction.start")
-        d = _vec(self.direction, 3, "TouchAction.direction")
-        if abs(np.linalg.norm(d) - 1.0) > 1e-3:
-            raise ValueError(f"TouchAction.direction must be a unit vector, got norm {np.linalg.norm(d):.4f}")
+        _unit(self.direction, "TouchAction.direction")
         if not (0 < self.max_length <= 0.5):
             raise ValueError(f"TouchAction.max_length must be in (0, 0.5] m, got {self.max_length}")
 
@@ -109,9 +115,7 @@ class PushAction:
 
     def __post_init__(self):
         _vec(self.start, 3, "PushAction.start")
-        d = _vec(self.direction, 3, "PushAction.direction")
-        if abs(np.linalg.norm(d) - 1.0) > 1e-3:
-            raise ValueError(f"PushAction.direction must be a unit vector, got norm {np.linalg.norm(d):.4f}")
+        _unit(self.direction, "PushAction.direction")
         if not (0 < self.length <= 0.4):
             raise ValueError(f"PushAction.length must be in (0, 0.4] m, got {self.length}")
 
@@ -500,6 +504,17 @@ class ClutterEnv:
                 out.append((int(self.geom_label[g1]), g2, c.pos.copy()))
         return out
 
+    def _first_contact_guard(self, first: list, allowed=()):
+        """A motion guard: true on any robot-object contact with an object not in ``allowed``; the contacts of the
+        first such moment are appended to ``first`` (once)."""
+        def guard() -> bool:
+            cs = [c for c in self._contacts() if c[0] not in allowed]
+            if cs and not first:
+                first.extend(cs)
+            return bool(cs)
+
+        return guard
+
     def _period(self, q: np.ndarray, pad: float, guard=None) -> bool:
         """One control period toward arm joints ``q (7,)`` and pad slide ``pad`` (linear ramp of the targets);
         ``guard()`` is checked after every physics step and stops the period (returns True) when true."""
@@ -611,13 +626,7 @@ class ClutterEnv:
         start[2] = max(start[2], 0.012)
         yaw = self._leading_yaw(d, float(self.ee_state()[3]))
         first: list = []
-
-        def guard() -> bool:  # stop at the first robot-object contact and keep what it touched
-            cs = self._contacts()
-            if cs and not first:
-                first.extend(cs)
-            return bool(cs)
-
+        guard = self._first_contact_guard(first)
         aborted = self._transit(np.array([*start, yaw]), 0.0, guard=guard)
         touched = False
         if not aborted:
@@ -686,19 +695,12 @@ class ClutterEnv:
         # open while in transit, guarded descent onto the grasp height
         self._hold(10, open_)
         first: list = []
-
-        def guard(allowed=()) -> bool:
-            cs = [c for c in self._contacts() if c[0] not in allowed]
-            if cs and not first:
-                first.extend(cs)
-            return bool(cs)
-
-        aborted = self._transit(pre, open_, guard=guard)
+        aborted = self._transit(pre, open_, guard=self._first_contact_guard(first))
         where = "approach"
         if not aborted:
             where = "descent"
             aborted = self._line(np.array([p[0], p[1], z_grasp, yaw]), open_, s.max_ee_step,
-                                 guard=lambda: guard((a.label,)))
+                                 guard=self._first_contact_guard(first, allowed=(a.label,)))
         grasped = False
         self.last_pick_failure = ""
         if aborted:
