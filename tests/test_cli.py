@@ -105,6 +105,26 @@ def test_sweep_resumed_with_other_settings_is_refused(capsys, tmp_path):
     assert "other settings" in err and "steps: 40 != 30" in err
 
 
+def test_box_episode_run_before_the_task_defaults_changed_is_not_resumed(capsys, tmp_path):
+    """box-* run with the contact-placed proposals (TaskSpec.belief_defaults); an episode recorded without them
+    (an older sweep folder) must not be counted as finished by a resume, nor pooled with newer ones in a table."""
+    from activetouch.experiments.records import write_json_atomic
+    from activetouch.experiments.runner import task_belief_defaults
+
+    assert task_belief_defaults("box-0") == {"reinvigorate": 100} and task_belief_defaults("mug-0") == {}
+    _fake_episode(tmp_path, "box-0", "rumi", 0)  # no task_belief_defaults recorded: the old default
+    assert main(["sweep", "--tasks", "box-0", "--seeds", "1", "--out", str(tmp_path)]) == 2
+    assert "belief settings with the task's defaults: {} != {'reinvigorate': 100}" in _err(capsys)
+    d = _fake_episode(tmp_path / "t", "box-0", "rumi", 1)
+    s = __import__("json").loads((d / "summary.json").read_text())
+    write_json_atomic(d / "summary.json", {**s, "task_belief_defaults": {"reinvigorate": 100}})
+    _fake_episode(tmp_path / "t", "box-0", "rumi", 2)
+    assert main(["table", str(tmp_path / "t")]) == 2
+    assert "different belief settings" in _err(capsys)
+    _fake_episode(tmp_path / "u", "box-0", "rumi", 1, belief={"reinvigorate": 100})  # the same, said explicitly
+    assert main(["table", str(tmp_path / "u")]) == 0
+
+
 def test_table_refuses_mixed_settings_and_repeated_seeds(capsys, tmp_path):
     _fake_episode(tmp_path / "a", "mug-0", "rumi", 0)
     _fake_episode(tmp_path / "a", "mug-0", "rumi", 1, particles=10)

@@ -72,6 +72,9 @@ class TaskEntry:
             ``object`` (a ``KnownObject``) and ``max_steps``.
         prior: ``(env, obs0, n, generator, device) -> (n, 4, 4)`` prior pose particles from the first observation.
         success: ``(rows, last_info, env) -> dict`` the task's success fields of the summary (must hold ``success``).
+        belief_defaults: ``((field, value), ...)`` belief settings the task runs with unless ``--belief`` overrides
+            them (recorded in each summary as ``task_belief_defaults``: a resume or a table never mixes runs
+            made under other task defaults).
     """
 
     name: str
@@ -81,6 +84,7 @@ class TaskEntry:
     make_env: Callable[..., Any]
     prior: Callable[..., Any]
     success: Callable[..., dict[str, Any]]
+    belief_defaults: tuple = ()
 
 
 @dataclass(frozen=True)

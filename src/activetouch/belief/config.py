@@ -67,6 +67,12 @@ class BeliefConfig:
       CHSEL registers against at most this many points of each semantics class (a seeded random subset, free
       points first restricted to those that can touch a prior particle); a camera view holds ~60k free points
       and CHSEL's cost grows linearly with them (LIBRARY-NOTES checked 250 surface + 200 free points).
+    * ``reinvigorate`` / ``reinvigorate_share`` (beyond the paper, 0 = off = Algorithm 4 as published): at each
+      resample with surface evidence, this many fresh prior draws are placed on the observed surface points
+      (:mod:`activetouch.belief.reinvigorate`), the best ``reinvigorate_share`` P of them are optimised like the
+      resampled particles and each replaces a random particle with the Metropolis probability
+      ``min(1, exp(-lam (C_p - C_i)))`` (a resample-move step). Needs the belief's ``proposal``
+      (the task's prior sampler, set by the episode). The drill and box tasks turn it on (``TaskSpec.belief_defaults``).
     """
 
     num_particles: int = 100
@@ -92,6 +98,8 @@ class BeliefConfig:
     chsel_qd_iterations: int = 100
     chsel_resolution: float = 0.004
     chsel_max_points: int = 500
+    reinvigorate: int = 0
+    reinvigorate_share: float = 0.2
 
     def __post_init__(self):
         def _pos(name, allow_zero=False):
@@ -100,15 +108,18 @@ class BeliefConfig:
             if not ok:
                 raise ValueError(f"BeliefConfig.{name} must be finite and {'>= 0' if allow_zero else '> 0'}, got {v!r}")
 
-        for name in ("num_particles", "n_opt", "chsel_iterations", "chsel_qd_iterations", "chsel_max_points"):
+        for name in ("num_particles", "n_opt", "chsel_iterations", "chsel_qd_iterations", "chsel_max_points",
+                     "reinvigorate"):
             v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < (0 if name == "n_opt" else 1):
+            if not isinstance(v, int) or isinstance(v, bool) or v < (0 if name in ("n_opt", "reinvigorate") else 1):
                 raise ValueError(f"BeliefConfig.{name} must be a positive int, got {v!r}")
         for name in ("lam", "resample_threshold", "free_scale", "r_free", "r_surface", "beta_t", "opt_lr_t",
                      "opt_lr_R", "chsel_resolution"):
             _pos(name)
         for name in ("sigma_t", "sigma_R", "violation_tolerance", "active_weight"):
             _pos(name, allow_zero=True)
+        if not (math.isfinite(float(self.reinvigorate_share)) and 0.0 < float(self.reinvigorate_share) <= 1.0):
+            raise ValueError(f"BeliefConfig.reinvigorate_share must be in (0, 1], got {self.reinvigorate_share!r}")
         if self.resample_percentile is not None and not (0.0 < float(self.resample_percentile) <= 100.0):
             raise ValueError(f"BeliefConfig.resample_percentile must be in (0, 100] or None, "
                              f"got {self.resample_percentile!r}")

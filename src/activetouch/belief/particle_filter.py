@@ -92,6 +92,10 @@ class ParticleBelief:
         self._weights = w.detach().clone()
         #: ``(P,)`` discrepancies of the last weigh/update (None before the first).
         self.last_discrepancy: torch.Tensor | None = None
+        #: ``(n, generator) -> (n, 4, 4)`` prior sampler used by ``config.reinvigorate`` (None: off).
+        self.proposal = None
+        #: particles replaced by placed prior proposals at the last resample (0 when off or none won).
+        self.last_reinvigorated = 0
         self._check_invariants()
 
     # ------------------------------------------------------------------ state
@@ -199,12 +203,64 @@ class ParticleBelief:
         cfg = self.config
         idx = systematic_resample(weights, self.num_particles, generator)  # line 1
         poses = perturb_poses(self._poses[idx], cfg.sigma_t, cfg.sigma_R, cfg.se2, generator)  # lines 2-3
+        costs = None
         if cfg.n_opt > 0 and len(features) > 0:  # lines 4-6
             poses, costs = optimise_poses(self._cost_fn(features), poses, cfg.n_opt, cfg.opt_lr_t, cfg.opt_lr_R,
                                           cfg.se2)
             self.last_discrepancy = costs
+        self.last_reinvigorated = 0
+        if cfg.reinvigorate > 0 and self.proposal is not None and len(features) > 0:
+            poses = self._reinvigorate(features, poses.detach(), costs, generator)
         self._poses = poses.detach()
         self._weights = torch.full_like(self._weights, 1.0 / self.num_particles)
+
+    def _reinvigorate(self, features, poses: torch.Tensor, costs: torch.Tensor | None, generator) -> torch.Tensor:
+        """A resample-move step with contact-placed prior proposals (beyond the paper, ``config.reinvigorate``;
+        see :mod:`activetouch.belief.reinvigorate`). ``poses (P, 4, 4)``, ``costs (P,)`` their C^ (None: computed
+        here). Returns the new ``(P, 4, 4)``.
+
+        ``reinvigorate`` prior draws are placed on the observed surface points; the ``reinvigorate_share P`` of
+        lowest C^ get Algorithm 4's N_o optimisation steps; each is then paired with a distinct particle drawn
+        uniformly and replaces it with the Metropolis probability ``min(1, exp(-lam (C_p - C_i)))`` of the
+        posterior of Eq. 10 (Algorithm 2): an independence-proposal move (Gilks and Berzuini's resample-move),
+        whose proposal density is taken as uniform over the placements. Proposals that fit the evidence as well
+        as the particles enter as often as they leave, so the particle set keeps the poses the evidence cannot
+        tell apart, and APC stays high until it can.
+        """
+        from .discrepancy import SURFACE
+        from .reinvigorate import place_on_surface
+
+        cfg = self.config
+        surface = features.positions[features.semantics == SURFACE]
+        if surface.shape[0] == 0:
+            return poses
+        if not hasattr(self, "_model_points"):
+            self._model_points = self.obj.sample_surface(2000, seed=0).to(poses)
+        cand = check_poses(self.proposal(cfg.reinvigorate, generator), "proposal poses").to(poses)
+        cand = place_on_surface(self._model_points, cand, surface, generator)
+        with torch.no_grad():
+            if costs is None:
+                costs = self.discrepancy(features, poses)
+            lc = self.discrepancy(features, cand)
+        m = max(1, min(cand.shape[0], int(cfg.reinvigorate_share * self.num_particles)))
+        best = torch.argsort(lc)[:m]
+        cand, lc = cand[best], lc[best]
+        if cfg.n_opt > 0:
+            cand, lc = optimise_poses(self._cost_fn(features), cand, cfg.n_opt, cfg.opt_lr_t, cfg.opt_lr_R, cfg.se2)
+        gdev = generator.device if generator is not None else torch.device("cpu")
+        target = torch.randperm(self.num_particles, generator=generator, device=gdev)[:m].to(poses.device)
+        u = torch.rand(m, generator=generator, device=gdev, dtype=poses.dtype).to(poses.device)
+        log_ratio = -float(cfg.lam) * (lc - costs[target])
+        accept = torch.isfinite(lc) & (torch.log(u) < log_ratio)
+        k = int(accept.sum())
+        if k:
+            poses = poses.clone()
+            costs = costs.clone()
+            poses[target[accept]] = cand[accept]
+            costs[target[accept]] = lc[accept]
+        self.last_reinvigorated = k
+        self.last_discrepancy = costs
+        return poses
 
     # ------------------------------------------------------------------ Algorithm 1 lines 11-13
     def predict(self, dT: torch.Tensor, generator: torch.Generator | None = None, noise: bool = True) -> None:

@@ -95,6 +95,8 @@ class RumiEstimator:
     discrepancy of the accumulated labelled point features ``X_t`` (Algorithms 2-6)."""
 
     FIGURES = ("curves.png", "belief.png", "contact.png")
+    #: particles replaced by contact-placed prior proposals at the step's resample (BeliefConfig.reinvigorate)
+    COLUMNS = ("reinvigorated",)
 
     def __init__(self, env, cfg, device):
         from activetouch.belief import BeliefConfig
@@ -111,8 +113,9 @@ class RumiEstimator:
         if unknown:
             raise ValueError(f"unknown belief settings {unknown} for rumi-particles; known: {', '.join(sorted(known - fixed))}")
         try:
+            settings = {**dict(getattr(env.spec, "belief_defaults", ())), **cfg.belief}  # the user's win
             self.config = BeliefConfig(num_particles=cfg.particles, se2=env.spec.se2,
-                                       chsel_iterations=cfg.chsel_iterations, **cfg.belief)
+                                       chsel_iterations=cfg.chsel_iterations, **settings)
         except (TypeError, ValueError) as e:
             raise ValueError(f"belief settings {cfg.belief}: {e}") from None
         self.belief = None
@@ -141,6 +144,8 @@ class RumiEstimator:
         prior = task.prior(self.env, cfg.particles, generator, self.device, features=X, obs=obs, info=info)
         self.belief = ParticleBelief.from_prior(self.obj, prior, X, bcfg, use_chsel=cfg.use_chsel,
                                                 generator=generator)  # lines 2-3
+        if bcfg.reinvigorate > 0:  # beyond the paper: contact-placed prior proposals at resampling
+            self.belief.proposal = lambda n, g: task.prior(self.env, n, g, self.device, features=X, obs=obs, info=info)
         self.features = X
         self.prior_apc = float(metrics.apc(self.obj, prior))
         if self.terminate and self.prior_apc < self.apc_stop:
@@ -186,7 +191,8 @@ class RumiEstimator:
         if "touch" in self.contact_story and "after" not in self.contact_story:
             self.contact_story["after"] = self._prev_snapshot
             self.contact_story["resampled"] = resampled
-        return {**self._feature_counts(), "resampled": resampled}
+        extra = {"reinvigorated": belief.last_reinvigorated if resampled else 0} if bcfg.reinvigorate > 0 else {}
+        return {**self._feature_counts(), "resampled": resampled, **extra}
 
     def metrics(self, info) -> dict[str, float]:
         T = _as_tensor(info["true_pose"], self.device)
@@ -201,7 +207,8 @@ class RumiEstimator:
         return bool(self.terminate and self._last is not None and self._last["apc"] < self.apc_stop)
 
     def summary(self) -> dict[str, Any]:
-        return {"prior_apc": self.prior_apc, "apc_termination": self.terminate}
+        return {"prior_apc": self.prior_apc, "apc_termination": self.terminate,
+                "reinvigorate": self.config.reinvigorate}
 
     def snapshot(self, info, planner=None) -> dict[str, Any]:
         field = getattr(planner, "last_field", None)

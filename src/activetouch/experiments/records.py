@@ -132,10 +132,17 @@ def settings_diff(a: dict[str, Any], b: dict[str, Any]) -> str:
                      if sa.get(k, "<unset>") != sb.get(k, "<unset>"))
 
 
+def effective_belief(summary: dict[str, Any]) -> dict[str, Any]:
+    """The belief settings an episode ran with beyond the method's defaults: the task's defaults
+    (``task_belief_defaults``, recorded since they exist; none before) under the ``--belief`` overrides."""
+    return {**summary.get("task_belief_defaults", {}), **(summary.get("config") or {}).get("belief", {})}
+
+
 def check_same_settings(summaries: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The common settings of ``summaries``; ``ValueError`` naming the first difference, or a (task, method, seed)
     that occurs twice (a table that counts one seed twice, or mixes settings, is silently wrong)."""
     seen: dict[tuple, str] = {}
+    task_defaults: dict[str, tuple] = {}
     first = None
     for s in summaries:
         cfg = s.get("config")
@@ -147,6 +154,11 @@ def check_same_settings(summaries: Sequence[dict[str, Any]]) -> dict[str, Any]:
             raise ValueError(f"{key[1]} on {key[0]} seed {key[2]} occurs twice ({seen[key]} and {where}): "
                              "aggregate one sweep folder at a time")
         seen[key] = where
+        td = effective_belief(s)
+        if key[0] in task_defaults and task_defaults[key[0]][0] != td:
+            raise ValueError(f"episodes of {key[0]} run with different belief settings (the task's defaults "
+                             f"under --belief): {task_defaults[key[0]][1]} ({task_defaults[key[0]][0]}) vs {where} ({td})")
+        task_defaults.setdefault(key[0], (td, where))
         if first is None:
             first = s
         else:

@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from activetouch.experiments.records import STEP_COLUMNS, StepWriter, is_finished, read_steps, write_json_atomic
+from activetouch.experiments.records import (STEP_COLUMNS, StepWriter, effective_belief, is_finished, read_steps,
+                                             write_json_atomic)
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +113,13 @@ def check_config(cfg: EpisodeConfig, out_dir: str | Path | None = None):
     except TypeError as e:  # an override the factory does not take
         raise ValueError(f"method {cfg.method!r} does not accept the planner settings {cfg.planner}: {e}") from None
     return task, method, env
+
+
+def task_belief_defaults(task: str) -> dict[str, Any]:
+    """The belief settings a registered task runs with unless ``--belief`` overrides them (``{}`` for most)."""
+    from activetouch.registry import get_task
+
+    return dict(get_task(task).belief_defaults)
 
 
 def platform_info() -> dict[str, Any]:
@@ -253,6 +261,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
         "median_plan_s": float(np.median(plan_times)) if plan_times else None,
         "wall_s": time.perf_counter() - t_episode,
         "config": asdict(cfg),
+        "task_belief_defaults": task_belief_defaults(cfg.task),
         "platform": platform_info(),
     }
     if cfg.figures:  # before summary.json: a kill while plotting leaves an unfinished episode, not a figureless one
@@ -347,8 +356,14 @@ def run_sweep(tasks, methods, seeds, root, base: EpisodeConfig | None = None, wo
             d = episode_dir(root, task, method, seed)
             cfg = replace(base, task=task, method=method, seed=seed, progress=False)
             if is_finished(d):
-                done = load_summaries([d])[0].get("config", {})
+                done_summary = load_summaries([d])[0]
+                done = done_summary.get("config", {})
                 diff = settings_diff(done, asdict(cfg))
+                was = effective_belief(done_summary)
+                now = {**task_belief_defaults(task), **cfg.belief}
+                if was != now:
+                    diff = ", ".join(x for x in (diff, f"belief settings with the task's defaults: {was} != {now}")
+                                     if x)
                 if diff:  # a resume never mixes runs of different settings
                     raise ValueError(f"{d} holds an episode run with other settings ({diff}): resume with "
                                      "the same settings or sweep into another --out folder")
