@@ -198,15 +198,18 @@ class RummageEnv:
         cam = cast_rays(m, d, s.camera, self._obj_visual, s.workspace_lower, s.workspace_upper)
         surface.append(cam.surface)
         free.append(_voxel_unique(cam.free, s.camera.free_spacing))
+        n_floor = 0
         if s.floor_free_points:
             free.append(self._floor_points())
+            n_floor = len(free[-1])
         tac = self.tactile.sense(self.ee_pose(), self.true_pose())
         surface.append(tac.surface)
         free.append(tac.free)
         obs = Observation(features=_features(surface, free), ee_pose=torch.as_tensor(self.ee_pose(), dtype=torch.float32),
                           in_contact=len(tac.surface) > 0,
                           dT=torch.eye(4) if s.observe_dT else None)
-        return obs, self._info(camera_surface_points=len(cam.surface))
+        return obs, self._info(camera_surface_points=len(cam.surface), camera_free_points=len(free[0]),
+                               floor_free_points=n_floor)
 
     def _floor_points(self) -> np.ndarray:
         """Free points on a grid of spacing ``r_w`` just below the table top over the workspace (box tasks)."""
