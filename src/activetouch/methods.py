@@ -199,3 +199,13 @@ def make_tiqf_slide(env, belief_config, seed, **overrides):
     from activetouch.planning.slide import SlidePlanner
 
     return SlidePlanner.from_env(env, belief_config, seed, **overrides)
+
+
+@register_method("rumi-touch-ig", "mixed: RUMI's CHSEL-weighted particles with the touch paper's planner: pokes into "
+                                  "importance-sampled particles scored by expected IG (Alg. 1, shared-support entropy "
+                                  "Eq. 5, Eq. 10 contact model), static prediction", requires=("ee-delta-actions",),
+                 quick={"num_candidates": 4, "waypoints": 3})
+def make_rumi_touch_ig(env, belief_config, seed, **overrides):
+    from activetouch.planning.particle_ig import ParticleIGPlanner
+
+    return ParticleIGPlanner.from_env(env, belief_config, seed, **overrides)
