@@ -87,6 +87,37 @@ def test_scene_nodes_and_slider(served, episode_dir):
                                atol=1e-6)
 
 
+def test_rumi_information_field_is_logged_and_drawn_as_a_voxel_cloud(tmp_path):
+    """RUMI's planner caches I~(x|X) on the workspace grid; the log keeps its cells above 5 % of the maximum with
+    every step and the viewer draws the field the next action was planned on."""
+    from activetouch.experiments.episode_log import read_log
+    from activetouch.methods import QUICK_KMPPI
+
+    out = tmp_path / "mug"
+    run_episode(EpisodeConfig(task="mug-0", method="rumi", seed=0, steps=2, particles=20, use_chsel=False,
+                              planner=dict(QUICK_KMPPI), figures=False, progress=False), out)
+    with read_log(out) as log:
+        rec = [s["belief"] for s in log.steps()]
+    assert all("field_points" in r for r in rec)
+    fp, fv = np.asarray(rec[0]["field_points"]), np.asarray(rec[0]["field_values"])
+    assert fp.ndim == 2 and fp.shape[1] == 3 and len(fp) == len(fv) > 10
+    assert float(fv.min()) > 0.05 * float(fv.max()) * 0.999
+    ep = viewer.load_episode(out)
+    server = viewer.serve(out, port=_free_port(), block=False)
+    try:
+        sc = server.episode_scene
+        assert "/belief/field" in sc.nodes and sc.has_field
+        sc.show(0)  # the reset: the field the first action was planned on
+        h = sc.handles["/belief/field"]
+        assert h.visible
+        np.testing.assert_allclose(np.asarray(h.points, np.float64), ep.frames[1].field_points, atol=1e-3)  # viser: float16
+        sc.show_field.value = False
+        sc.show(0)
+        assert not h.visible
+    finally:
+        server.stop()
+
+
 def test_observation_kinds_of_the_other_families():
     """RUMI features (surface / free) and a touch-only poke (ee path, contacts) become point kinds and robot poses."""
     from activetouch.observations import Features

@@ -24,8 +24,10 @@ What the scene shows, from ``episode.h5`` (and ``steps.csv`` for the metrics) of
   a poke (touch-only), ``/camera/step_<k>``: the camera of a clutter view;
 * a GUI slider ``step`` (0..T) and a text with the step's action and metrics (ADI, NLL, ... from ``steps.csv``).
 
-The belief itself (RUMI's particles, the TIQF estimate) is not in the episode log, so it is not drawn: the log
-holds what the methods observed, which is what the scene shows.
+* ``/belief/estimate`` and ``/belief/particles``: the belief after the selected step's update (the log records it):
+  the heaviest hypothesis as the object mesh, every hypothesis's object centre coloured by its weight;
+* ``/belief/field``: the information field the next action was planned on (RUMI's I~(x|X), GPVR's variance) as a
+  voxel cloud of the cells above 5 % of its maximum, coloured by value, with a checkbox.
 """
 from __future__ import annotations
 
@@ -63,6 +65,7 @@ POINT_SIZE = 0.004
 #: RUMI's free-space points fill the camera's view volume (tens of thousands a step): drawn small, at most this
 #: many a step (an even subsample), and hidden with the "free space" checkbox
 MAX_FREE_POINTS = 2000
+FIELD_POINT_SIZE = 0.008
 FREE_POINT_SIZE = 0.0012
 
 
@@ -81,6 +84,8 @@ class Frame:
     metrics: dict[str, float]
     belief_poses: np.ndarray | None = None  # (P, 4, 4) the belief after this step's update
     belief_weights: np.ndarray | None = None  # (P,)
+    field_points: np.ndarray | None = None  # (K, 3) cells of the information field this step's action was planned on
+    field_values: np.ndarray | None = None  # (K,)
 
 
 @dataclasses.dataclass
@@ -200,14 +205,16 @@ def load_episode(path: str | Path, folder: str | Path | None = None) -> Episode:
         info = info if isinstance(info, dict) else {}
         pts, ee_pose, ee_path, cam = _observation(obs, info)
         op = info.get("object_poses")
-        bp = bw = None
+        bp = bw = fp = fv = None
         if isinstance(belief, dict) and belief.get("poses") is not None:
             bp, bw = _np(belief["poses"]).reshape(-1, 4, 4), _np(belief["weights"]).reshape(-1)
+        if isinstance(belief, dict) and belief.get("field_points") is not None:
+            fp, fv = _np(belief["field_points"]).reshape(-1, 3), _np(belief["field_values"]).reshape(-1)
         frames.append(Frame(step=k, action=str(info.get("action") or _action_name(action)),
                             true_pose=_np(info["true_pose"]).reshape(4, 4),
                             object_poses=None if op is None else _np(op).reshape(-1, 4, 4),
                             points=pts, ee_pose=ee_pose, ee_path=ee_path, camera=cam, metrics=metrics.get(k, {}),
-                            belief_poses=bp, belief_weights=bw))
+                            belief_poses=bp, belief_weights=bw, field_points=fp, field_values=fv))
     info0 = records[0][3] if isinstance(records[0][3], dict) else {}
     return Episode(path=folder, task=task, method=method, seed=seed, target=_target_name(task, info0),
                    object_names=tuple(str(n) for n in (info0.get("object_names") or ())), frames=frames)
@@ -334,6 +341,15 @@ class EpisodeScene:
             self._add("/belief/particles", sc.add_point_cloud("/belief/particles", points=c, colors=col,
                                                               point_size=0.006, point_shape="circle"))
 
+        # the information field (RUMI's I~(x|X), GPVR's variance) as a voxel cloud: the cells above 5 % of the
+        # field's maximum, coloured by value (dark: low, bright: high), with a checkbox
+        self.has_field = any(fr.field_points is not None and len(fr.field_points) for fr in episode.frames)
+        if self.has_field:
+            ff = next(fr for fr in episode.frames if fr.field_points is not None and len(fr.field_points))
+            p, col = self._field(ff)
+            self._add("/belief/field", sc.add_point_cloud("/belief/field", points=p, colors=col,
+                                                          point_size=FIELD_POINT_SIZE, point_shape="square"))
+
         radius = float(np.linalg.norm(target.extents)) if hasattr(target, "extents") else 0.3
         dist = max(0.35, 2.0 * radius)
         server.initial_camera.look_at = tuple(centre + [0.0, 0.0, 0.05])
@@ -347,6 +363,8 @@ class EpisodeScene:
         self.text = server.gui.add_markdown("")
         self.free = server.gui.add_checkbox("free space", initial_value=True,
                                             visible=any("free" in f.points for f in episode.frames))
+        self.show_field = server.gui.add_checkbox("information field", initial_value=True, visible=self.has_field)
+        self.show_field.on_update(lambda _event: self.show(self.step))
         self.slider.on_update(lambda _event: self.show(int(self.slider.value)))
         self.free.on_update(lambda _event: self.show(self.step))
         self.step = -1
@@ -363,6 +381,16 @@ class EpisodeScene:
         x = (w - w.min()) / span if span > 0 else np.ones_like(w)
         col = (np.asarray(matplotlib.colormaps["viridis"](x))[:, :3] * 255).astype(np.uint8)
         return c.astype(np.float32), col
+
+    @staticmethod
+    def _field(fr: Frame) -> tuple[np.ndarray, np.ndarray]:
+        """Field cells ``(K, 3)`` and their colours ``(K, 3)`` (inferno over the frame's values)."""
+        import matplotlib
+
+        v = fr.field_values
+        x = v / float(v.max()) if len(v) and float(v.max()) > 0 else np.ones_like(v)
+        col = (np.asarray(matplotlib.colormaps["inferno"](0.25 + 0.75 * x))[:, :3] * 255).astype(np.uint8)
+        return fr.field_points.astype(np.float32), col
 
     @staticmethod
     def _size(kind: str, current: bool) -> float:
@@ -415,6 +443,13 @@ class EpisodeScene:
                 c, col = self._particles(fb)
                 h = self.handles["/belief/particles"]
                 h.points, h.colors = c, col
+            if self.has_field:
+                ff = next((f for f in self.episode.frames if f.step >= fr.step and f.field_points is not None
+                           and len(f.field_points)), None)  # the field the next action was planned on
+                h = self.handles["/belief/field"]
+                h.visible = ff is not None and bool(self.show_field.value)
+                if ff is not None:
+                    h.points, h.colors = self._field(ff)
             ee = next((f.ee_pose for f in reversed(self.episode.frames) if f.step <= fr.step and f.ee_pose is not None),
                       None)
             if "/robot/ee" in self.handles:

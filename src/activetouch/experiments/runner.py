@@ -8,6 +8,7 @@ step go to ``steps.csv`` as soon as the step ends and ``summary.json`` is writte
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -224,7 +225,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
             fields = est.observe(obs, info, ee_before, gen)  # lines 10-20
             t3 = time.perf_counter()
             elog.step(t, u, obs, info, ee_before, logged, timings,  # appended, flushed and closed per step
-                      belief=_belief_record(est))
+                      belief=_belief_record(est, planner))
             m = est.metrics(info)
             row = {"step": t, **m, **fields, "in_contact": in_contact,
                    "plan_s": t1 - t0, "update_s": t3 - t2, "step_s": t2 - t1, **timings}
@@ -270,10 +271,27 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
     return summary
 
 
-def _belief_record(est) -> dict[str, Any]:
-    """The belief for the episode log's viewers: ``poses (P, 4, 4)`` and ``weights (P,)`` (float32, CPU)."""
-    return {"poses": est.poses.detach().to("cpu", torch.float32).clone(),
-            "weights": est.weights.detach().to("cpu", torch.float32).clone()}
+#: Cells of an information field kept in the episode log: those above this share of the field's maximum.
+FIELD_LOG_SHARE = 0.05
+
+
+def _belief_record(est, planner=None) -> dict[str, Any]:
+    """The belief for the episode log's viewers: ``poses (P, 4, 4)`` and ``weights (P,)`` (float32, CPU); with a
+    planner that exposes ``last_field`` (RUMI's I~(x|X), GPVR's variance: the field this step's action was planned
+    on), also ``field_points (K, 3)`` and ``field_values (K,)``: the cell centres above FIELD_LOG_SHARE of its
+    maximum (a sparse copy; the viewer draws it as a voxel cloud)."""
+    rec = {"poses": est.poses.detach().to("cpu", torch.float32).clone(),
+           "weights": est.weights.detach().to("cpu", torch.float32).clone()}
+    field = getattr(planner, "last_field", None) if planner is not None else None
+    if field is not None:
+        grid, values = field
+        v = torch.as_tensor(values).detach().to("cpu", torch.float32).reshape(-1)
+        vmax = float(v.max()) if v.numel() else 0.0
+        if vmax > 0 and math.isfinite(vmax):
+            keep = v > FIELD_LOG_SHARE * vmax
+            rec["field_points"] = grid.points().reshape(-1, 3)[keep].to(torch.float32)
+            rec["field_values"] = v[keep]
+    return rec
 
 
 def _max_steps(env) -> int:
