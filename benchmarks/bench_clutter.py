@@ -14,21 +14,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import statistics
-import time
 
 import numpy as np
 import torch
 
 
-def timed(fn, repeats: int):
-    walls, cpus, out = [], [], None
-    for _ in range(repeats):
-        w, c = time.perf_counter(), time.process_time()
-        out = fn()
-        walls.append(time.perf_counter() - w)
-        cpus.append(time.process_time() - c)
-    return statistics.median(walls), statistics.median(cpus), out
+from activetouch.experiments.timing import timed  # noqa: E402  (median wall / CPU seconds)
 
 
 def main(argv=None) -> int:

@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import statistics
-import time
 
 import numpy as np
 
@@ -51,14 +49,7 @@ def point_in_box(state: np.ndarray, bounds: np.ndarray, rng, z_range=(0.04, 0.18
     return np.array([state[0] + c * p[0] - s * p[1], state[1] + s * p[0] + c * p[1], rng.uniform(*z_range)])
 
 
-def timed(fn, repeats: int):
-    walls, cpus, out = [], [], None
-    for _ in range(repeats):
-        w, c = time.perf_counter(), time.process_time()
-        out = fn()
-        walls.append(time.perf_counter() - w)
-        cpus.append(time.process_time() - c)
-    return statistics.median(walls), statistics.median(cpus), out
+from activetouch.experiments.timing import timed  # noqa: E402  (median wall / CPU seconds)
 
 
 def main() -> None:

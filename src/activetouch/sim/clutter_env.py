@@ -35,6 +35,7 @@ import torch
 from .camera import PinholeCamera
 from .clutter_scene import GROUP_TRANSPARENT, build_clutter_scene, object_body_name
 from .grasp_scene import ARM_JOINTS, GRASP_GRIPPER, PAD_JOINTS
+from .grasp_tasks import control_substeps
 from .robot import Q_NOMINAL, ArmIK, ee_state_from_pose, yaw_rotation
 from .scene import GROUP_OBJECT_VISUAL, GROUP_ROBOT, GROUP_STATIC
 
@@ -235,13 +236,11 @@ class ClutterTaskSpec:
             raise ValueError(f"seg_boundary_noise must be in [0, 1], got {self.seg_boundary_noise}")
         if self.max_actions < 1:
             raise ValueError("max_actions must be >= 1")
-        n = self.control_dt / self.timestep
-        if abs(n - round(n)) > 1e-9:
-            raise ValueError(f"control_dt {self.control_dt} must be a multiple of timestep {self.timestep}")
+        control_substeps(self.control_dt, self.timestep)
 
     @property
     def substeps(self) -> int:
-        return int(round(self.control_dt / self.timestep))
+        return control_substeps(self.control_dt, self.timestep)
 
     @property
     def max_steps(self) -> int:

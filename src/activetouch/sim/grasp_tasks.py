@@ -21,6 +21,15 @@ import numpy as np
 __all__ = ["GraspTaskSpec", "GRASP_TASKS", "registered_grasp_tasks", "get_grasp_spec", "sample_task_instance"]
 
 
+def control_substeps(control_dt: float, timestep: float) -> int:
+    """Physics steps per control period; ``ValueError`` unless ``control_dt`` is a positive multiple of ``timestep``
+    (shared by the grasp and clutter task specs)."""
+    n = float(control_dt) / float(timestep)
+    if abs(n - round(n)) > 1e-6 or round(n) < 1:
+        raise ValueError(f"control_dt {control_dt} must be a multiple of timestep {timestep}")
+    return int(round(n))
+
+
 @dataclasses.dataclass(frozen=True)
 class GraspTaskSpec:
     """Everything that defines one blind-grasping task. Lengths in metres, angles in radians, forces in N,
@@ -107,9 +116,7 @@ class GraspTaskSpec:
             raise ValueError("workspace_lower/upper must be (x, y) with upper > lower")
         if self.mode_separation > float(np.linalg.norm(up - lo)):
             raise ValueError(f"mode_separation {self.mode_separation} does not fit in the workspace")
-        n = self.control_dt / self.timestep
-        if abs(n - round(n)) > 1e-6 or round(n) < 1:
-            raise ValueError(f"control_dt {self.control_dt} must be a multiple of timestep {self.timestep}")
+        control_substeps(self.control_dt, self.timestep)
         if not 1 <= self.contact_joints <= 7:
             raise ValueError(f"contact_joints must be in 1..7, got {self.contact_joints}")
         if self.max_actions < 1 or self.max_waypoints < 1 or self.stop_hold < 0:
