@@ -111,8 +111,9 @@ class BeliefConfig:
         for name in ("num_particles", "n_opt", "chsel_iterations", "chsel_qd_iterations", "chsel_max_points",
                      "reinvigorate"):
             v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < (0 if name in ("n_opt", "reinvigorate") else 1):
-                raise ValueError(f"BeliefConfig.{name} must be a positive int, got {v!r}")
+            lowest = 0 if name in ("n_opt", "reinvigorate") else 1
+            if not isinstance(v, int) or isinstance(v, bool) or v < lowest:
+                raise ValueError(f"BeliefConfig.{name} must be an int >= {lowest}, got {v!r}")
         for name in ("lam", "resample_threshold", "free_scale", "r_free", "r_surface", "beta_t", "opt_lr_t",
                      "opt_lr_R", "chsel_resolution"):
             _pos(name)
