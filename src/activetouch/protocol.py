@@ -22,6 +22,8 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from activetouch.sim.env import TaskGeometry
+
 __all__ = ["SensorFrame", "EeDeltaCommand", "Robot", "RobotEnv", "check_robot", "ProtocolError", "CAMERA", "TOUCH", "PRIOR",
            "SURFACE", "FREE", "OCCUPIED"]
 
@@ -159,7 +161,7 @@ def check_robot(robot, command_dim: int, steps: int = 2) -> list[SensorFrame]:
     return frames
 
 
-class RobotEnv:
+class RobotEnv(TaskGeometry):
     """The rummaging environment interface (``activetouch.sim.env.RummageEnv``'s) on top of any :class:`Robot`.
 
     Args:
@@ -183,35 +185,11 @@ class RobotEnv:
         self._frame: SensorFrame | None = None
         self._n_joints: int | None = None
 
-    # -- the geometry the planners read: the same functions as the simulated environment's
-    @property
-    def action_scale(self) -> tuple[float, float]:
-        return (self.spec.translation_scale, self.spec.rotation_scale)
-
-    @property
-    def action_dim(self) -> int:
-        return self.spec.action_dim
-
-    @property
-    def max_steps(self) -> int:
-        return self.spec.max_steps
-
+    # action_scale, action_dim, gripper_points, target_ee, reachability: TaskGeometry (from self.spec)
     def gripper_points(self, spacing: float = 0.01):
         if self._gripper_points is not None:
             return self._gripper_points()
-        from activetouch.sim.robot import gripper_points
-
-        return gripper_points(spacing)
-
-    def target_ee(self, ee: np.ndarray, u: np.ndarray) -> np.ndarray:
-        from activetouch.sim.env import RummageEnv
-
-        return RummageEnv.target_ee(self, ee, u)  # free-space dynamics: reads only self.spec
-
-    def reachability(self):
-        from activetouch.sim.env import RummageEnv
-
-        return RummageEnv.reachability(self)  # reads only self.spec
+        return super().gripper_points(spacing)
 
     def ee_pose(self) -> np.ndarray:
         return np.asarray(self._frame.ee_pose, dtype=np.float64)

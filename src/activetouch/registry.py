@@ -122,6 +122,12 @@ _BELIEFS: dict[str, BeliefEntry] = {}
 _METHODS: dict[str, MethodSpec] = {}
 
 
+def belief_settings(task: str, overrides: dict[str, Any]) -> dict[str, Any]:
+    """The belief settings a run of ``task`` uses beyond the method's defaults: the task's ``belief_defaults``
+    under the user's overrides (``--belief``)."""
+    return {**dict(get_task(task).belief_defaults), **dict(overrides)}
+
+
 def register_task(entry: TaskEntry) -> TaskEntry:
     if entry.name in _TASKS:
         raise ValueError(f"task {entry.name!r} is already registered")

@@ -23,6 +23,7 @@ from ..geometry import pose_from_xyz_yaw, yaw_of
 
 __all__ = [
     "ContactModelConfig",
+    "contact_probability",
     "contact_likelihood",
     "contact_log_likelihood",
     "robot_object_distance",
@@ -103,8 +104,9 @@ def _check_distances(d, z: torch.Tensor) -> torch.Tensor:
     return d
 
 
-def _contact_prob(d: torch.Tensor, cfg: ContactModelConfig) -> torch.Tensor:
-    """``P(z=1 | d)`` elementwise; ``d < 0`` (penetration) counts as 0, ``+inf`` gives ``alpha_fp``."""
+def contact_probability(d: torch.Tensor, cfg: ContactModelConfig = ContactModelConfig()) -> torch.Tensor:
+    """``P(z=1 | d)`` elementwise (Eq. 10, or ref. [3]'s step); ``d < 0`` (penetration) counts as 0, ``+inf``
+    gives ``alpha_fp``. Unchecked: :func:`contact_likelihood` validates its inputs."""
     dc = d.clamp_min(0.0)
     if cfg.kind == "binary":
         return torch.where(dc <= cfg.binary_tolerance, torch.full_like(dc, cfg.alpha_tp),
@@ -123,7 +125,7 @@ def contact_likelihood(z, d, cfg: ContactModelConfig = ContactModelConfig()) -> 
     """
     z = _check_z(z)
     d = _check_distances(d, z)
-    p1 = _contact_prob(d, cfg)
+    p1 = contact_probability(d, cfg)
     return torch.where(z.to(d.device).unsqueeze(-1), p1, 1.0 - p1)
 
 
@@ -135,7 +137,7 @@ def contact_log_likelihood(z, d, cfg: ContactModelConfig = ContactModelConfig())
     """
     z = _check_z(z)
     d = _check_distances(d, z)
-    p1 = _contact_prob(d, cfg)
+    p1 = contact_probability(d, cfg)
     return torch.where(z.to(d.device).unsqueeze(-1), torch.log(p1), torch.log1p(-p1))
 
 

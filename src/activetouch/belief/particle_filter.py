@@ -96,6 +96,7 @@ class ParticleBelief:
         self.proposal = None
         #: particles replaced by placed prior proposals at the last resample (0 when off or none won).
         self.last_reinvigorated = 0
+        self._model_points: torch.Tensor | None = None  # (2000, 3) object surface samples for the placement
         self._check_invariants()
 
     # ------------------------------------------------------------------ state
@@ -234,7 +235,7 @@ class ParticleBelief:
         surface = features.positions[features.semantics == SURFACE]
         if surface.shape[0] == 0:
             return poses
-        if not hasattr(self, "_model_points"):
+        if self._model_points is None:
             self._model_points = self.obj.sample_surface(2000, seed=0).to(poses)
         cand = check_poses(self.proposal(cfg.reinvigorate, generator), "proposal poses").to(poses)
         cand = place_on_surface(self._model_points, cand, surface, generator)

@@ -113,7 +113,9 @@ class RumiEstimator:
         if unknown:
             raise ValueError(f"unknown belief settings {unknown} for rumi-particles; known: {', '.join(sorted(known - fixed))}")
         try:
-            settings = {**dict(getattr(env.spec, "belief_defaults", ())), **cfg.belief}  # the user's win
+            from activetouch.registry import belief_settings
+
+            settings = belief_settings(cfg.task, cfg.belief)  # the task's defaults, the user's win
             self.config = BeliefConfig(num_particles=cfg.particles, se2=env.spec.se2,
                                        chsel_iterations=cfg.chsel_iterations, **settings)
         except (TypeError, ValueError) as e:

@@ -20,6 +20,7 @@ import torch
 
 from activetouch.experiments.records import (STEP_COLUMNS, StepWriter, effective_belief, is_finished, read_steps,
                                              write_json_atomic)
+from activetouch.registry import belief_settings
 
 log = logging.getLogger(__name__)
 
@@ -118,9 +119,7 @@ def check_config(cfg: EpisodeConfig, out_dir: str | Path | None = None):
 
 def task_belief_defaults(task: str) -> dict[str, Any]:
     """The belief settings a registered task runs with unless ``--belief`` overrides them (``{}`` for most)."""
-    from activetouch.registry import get_task
-
-    return dict(get_task(task).belief_defaults)
+    return belief_settings(task, {})
 
 
 def platform_info() -> dict[str, Any]:
@@ -378,7 +377,7 @@ def run_sweep(tasks, methods, seeds, root, base: EpisodeConfig | None = None, wo
                 done = done_summary.get("config", {})
                 diff = settings_diff(done, asdict(cfg))
                 was = effective_belief(done_summary)
-                now = {**task_belief_defaults(task), **cfg.belief}
+                now = belief_settings(task, cfg.belief)
                 if was != now:
                     diff = ", ".join(x for x in (diff, f"belief settings with the task's defaults: {was} != {now}")
                                      if x)

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from activetouch.belief.contact_model import ContactModelConfig, _contact_prob, pose_to_se2
+from activetouch.belief.contact_model import ContactModelConfig, contact_probability, pose_to_se2
 from activetouch.information.entropy import SE2_PERIODIC, expected_information_gain, object_se2_scale
 from activetouch.planning.dynamics import GripperModel, action_indices
 
@@ -166,7 +166,7 @@ class ParticleIGPlanner:
         # values only; points outside the cached box come back +inf (far: Eq. 10 gives alpha_fp there)
         v = self.obj.sdf_world_values(poses, pts.reshape(-1, 3), far_positive_from=0)  # (P, C*T*M)
         d = v.reshape(P, C, Tn, M).amin(dim=-1).permute(1, 2, 0).clamp_min(0.0).double()  # (C, T, P)
-        p = _contact_prob(d, c.contact)
+        p = contact_probability(d, c.contact)
         z = d <= c.contact_tol
         x0 = pose_to_se2(poses.double())  # (P, 3)
         if P < 2:  # one particle: nothing to learn (Eq. 5 needs rho + 1 particles); take the first candidate

@@ -80,7 +80,45 @@ def _features(surface: list[np.ndarray], free: list[np.ndarray]):
     return Features(pos, sem)
 
 
-class RummageEnv:
+class TaskGeometry:
+    """What the planners read of a rummaging task, all derived from ``self.spec`` (a ``TaskSpec``): action
+    scale and size, the free-space end-effector dynamics, the gripper points and the reachability map. Shared by
+    the simulated :class:`RummageEnv` and :class:`activetouch.protocol.RobotEnv` (any robot)."""
+
+    @property
+    def action_scale(self) -> tuple[float, float]:
+        """``(translation per unit action (m), rotation per unit action (rad))`` = (0.08, 0.5)."""
+        return (self.spec.translation_scale, self.spec.rotation_scale)
+
+    @property
+    def action_dim(self) -> int:
+        return self.spec.action_dim
+
+    def gripper_points(self, spacing: float = 0.01) -> tuple[torch.Tensor, torch.Tensor]:
+        """``h(q)`` in the ee frame ``(M, 3)`` and the ``h_I(q)`` mask ``(M,)``; see ``robot.gripper_points``."""
+        return gripper_points(spacing)
+
+    def target_ee(self, ee: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Free-space ee dynamics ``clip(ee + scale * u)``: ``[x, y, z, yaw] (4,)`` (u already clipped)."""
+        s = self.spec
+        if s.action_space == "planar":
+            delta = np.array([u[0] * s.translation_scale, u[1] * s.translation_scale, 0.0, u[2] * s.rotation_scale])
+        else:
+            delta = np.concatenate([u[:3] * s.translation_scale, [u[3] * s.rotation_scale]])
+        tgt = np.clip(ee + delta, s.ee_lower, s.ee_upper)
+        if s.action_space == "planar":
+            tgt[2] = s.ee_height
+        return tgt
+
+    def reachability(self):
+        """Reachability map of Eq. 30 over the task workspace: ``(VoxelGrid, values (nx, ny, nz))`` (cached)."""
+        from .reachability import reachability_map
+
+        lo, up = self.spec.workspace
+        return reachability_map(lo, up, planar=self.spec.action_space == "planar")
+
+
+class RummageEnv(TaskGeometry):
     """Simulated rummaging task: KUKA iiwa + soft-bubble gripper + one movable known object.
 
     Args:
@@ -128,19 +166,7 @@ class RummageEnv:
         self._reset_done = False
 
     # ------------------------------------------------------------------ properties
-    @property
-    def action_scale(self) -> tuple[float, float]:
-        """``(translation per unit action (m), rotation per unit action (rad))`` = (0.08, 0.5)."""
-        return (self.spec.translation_scale, self.spec.rotation_scale)
-
-    @property
-    def action_dim(self) -> int:
-        return self.spec.action_dim
-
-    def gripper_points(self, spacing: float = 0.01) -> tuple[torch.Tensor, torch.Tensor]:
-        """``h(q)`` in the ee frame ``(M, 3)`` and the ``h_I(q)`` mask ``(M,)``; see ``robot.gripper_points``."""
-        return gripper_points(spacing)
-
+    # action_scale, action_dim, gripper_points, target_ee, reachability: TaskGeometry (from self.spec)
     def ee_state(self) -> np.ndarray:
         """Current ``[x, y, z, yaw] (4,)`` of the end effector."""
         return ee_state_from_pose(self.data.site_xpos[self._site], self.data.site_xmat[self._site].reshape(3, 3))
@@ -235,18 +261,6 @@ class RummageEnv:
             raise ValueError(f"action contains NaN or inf: {u.tolist()}")
         return np.clip(u, -1.0, 1.0)
 
-    def target_ee(self, ee: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """Free-space ee dynamics ``clip(ee + scale * u)``: ``[x, y, z, yaw] (4,)`` (u already clipped)."""
-        s = self.spec
-        if s.action_space == "planar":
-            delta = np.array([u[0] * s.translation_scale, u[1] * s.translation_scale, 0.0, u[2] * s.rotation_scale])
-        else:
-            delta = np.concatenate([u[:3] * s.translation_scale, [u[3] * s.rotation_scale]])
-        tgt = np.clip(ee + delta, s.ee_lower, s.ee_upper)
-        if s.action_space == "planar":
-            tgt[2] = s.ee_height
-        return tgt
-
     def _touching(self) -> bool:
         d = self.data
         for i in range(d.ncon):
@@ -316,13 +330,6 @@ class RummageEnv:
         return obs, 0.0, False, truncated, info
 
     # ------------------------------------------------------------------ extras
-    def reachability(self):
-        """Reachability map of Eq. 30 over the task workspace: ``(VoxelGrid, values (nx, ny, nz))`` (cached)."""
-        from .reachability import reachability_map
-
-        lo, up = self.spec.workspace
-        return reachability_map(lo, up, planar=self.spec.action_space == "planar")
-
     def render(self, path, features=None, **kwargs):
         """Save a headless top-down + side picture of the current state to ``path`` (PNG)."""
         from .render import render_env

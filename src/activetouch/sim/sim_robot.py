@@ -26,48 +26,41 @@ class SimRobot:
 
     def __init__(self, env):
         self.env = env
-        self._obs = None
 
-    def _frame(self, obs, info: dict | None = None) -> SensorFrame:
+    def _frame(self, features, in_contact: bool, dT=None, info: dict | None = None) -> SensorFrame:
         env, d = self.env, self.env.data
-        feats = obs.features
-        pts = feats.positions.detach().cpu().numpy().astype(np.float64)
-        sem = feats.semantics.detach().cpu().numpy().astype(np.int64)
+        pts = features.positions.detach().cpu().numpy().astype(np.float64)
+        sem = features.semantics.detach().cpu().numpy().astype(np.int64)
         source = np.full(len(pts), TOUCH, dtype=np.int64)
         if info is not None and "camera_surface_points" in info:  # reset: RummageEnv lists, per semantics,
-            n_surf = int((sem == 0).sum())  # the camera's points first, then (free) the floor's, then touch
+            f0 = int((sem == 0).sum())  # the camera's points first, then (free) the floor's, then touch
             source[:int(info["camera_surface_points"])] = CAMERA
-            f0 = n_surf
             cf, fl = int(info.get("camera_free_points", 0)), int(info.get("floor_free_points", 0))
             source[f0:f0 + cf] = CAMERA
             source[f0 + cf:f0 + cf + fl] = PRIOR
-        elif env.spec.camera_every_step:  # RummageEnv lists the tactile surface points first, then the camera's
-            pass  # (mixed per step; the counts are not reported): labelled TOUCH, a documented simplification
         return SensorFrame(
             stamp=float(d.time), ee_pose=env.ee_pose(), joint_positions=d.qpos[env._qadr].copy(),
             joint_torques=d.qfrc_constraint[env._vadr].copy(), points=pts, semantics=sem, source=source,
-            in_contact=bool(obs.in_contact),
-            object_motion=None if obs.dT is None else obs.dT.detach().cpu().numpy().astype(np.float64),
+            in_contact=bool(in_contact),
+            object_motion=None if dT is None else dT.detach().cpu().numpy().astype(np.float64),
             object_pose=env.true_pose())
 
     def reset(self) -> SensorFrame:
         obs, info = self.env.reset()
-        return self._frame(obs, info)
+        return self._frame(obs.features, obs.in_contact, obs.dT, info)
 
     def observe(self) -> SensorFrame:
-        from activetouch.observations import Features
-        from activetouch.sim.env import Observation
-
         import mujoco
+
+        from activetouch.observations import Features
 
         env = self.env
         mujoco.mj_step(env.model, env.data)  # a sensor read takes time: one 2 ms physics step, joints held
-        empty = Observation(features=Features.empty(), ee_pose=None, in_contact=env._touching(), dT=None)
-        return self._frame(empty)
+        return self._frame(Features.empty(), env._touching())
 
     def act(self, command: EeDeltaCommand) -> SensorFrame:
         obs, _, _, _, _ = self.env.step(np.asarray(command.u, dtype=np.float64))
-        return self._frame(obs)
+        return self._frame(obs.features, obs.in_contact, obs.dT)
 
 
 def sim_robot_env(task: str, seed: int = 0, **overrides):
