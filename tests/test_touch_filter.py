@@ -346,3 +346,73 @@ def test_bad_input_raises(box):
         gmm_prior(torch.zeros(2, 2), 10)
     with pytest.raises(ValueError, match="ess_threshold"):
         TouchFilterConfig(ess_threshold=1.5)
+
+
+# ---------------------------------------------------------------------------------------------- history check
+def _free_fingers() -> torch.Tensor:
+    """``(4, M, 3)`` fingers in free space around the box at state (0, 0, 0) (none touches it): where a box
+    turned by a quarter turn and touching ``touching_finger`` would lie, and beside the narrow faces."""
+    return torch.stack([finger(c) for c in ([-0.09, 0.0, 0.1], [-0.07, 0.03, 0.1], [0.0, 0.13, 0.1],
+                                            [0.0, -0.13, 0.1])])
+
+
+def test_history_log_likelihood_sums_eq10_over_the_kept_segments(box):
+    cfg = TouchFilterConfig(num_particles=20, resample=False, history_check=True, history_segments=2)
+    b = TouchBelief.from_prior(box, _two_groups(), cfg)
+    segs = [(torch.tensor([False, False, False, False]), _free_fingers()),
+            (torch.tensor([True]), touching_finger()[None]),
+            (torch.tensor([False, True]), torch.stack([finger([0.5, 0.5, 0.1]), touching_finger()]))]
+    for z, rp in segs:
+        b.update(z, rp)
+    probe = torch.tensor([[0.0, 0.0, 0.0], [-0.046, 0.0, math.pi / 2], [0.3, 0.3, 1.0]], dtype=b.states.dtype)
+    want = sum(contact_log_likelihood(z, robot_object_distance(box, probe, rp).T, cfg.contact).sum(0)
+               for z, rp in segs[1:])  # only the last two segments are kept
+    assert torch.allclose(b.history_log_likelihood(probe), want.to(probe), atol=1e-6)
+    assert float(b.history_log_likelihood(probe)[0]) > float(b.history_log_likelihood(probe)[2]) + 1.0
+    plain = TouchBelief.from_prior(box, _two_groups(), TouchFilterConfig(num_particles=20, resample=False))
+    plain.update(*segs[0])
+    assert torch.equal(plain.history_log_likelihood(probe), torch.zeros(3, dtype=probe.dtype))  # nothing kept
+
+
+def test_history_check_keeps_candidates_that_earlier_pokes_ruled_out_away(box):
+    """Free space seen first, then a contact on the +x face that no particle explains (the prior lies 30 cm away):
+    App. B's candidates (half of them at any yaw near the contact) may sit where the free-space fingers were; with
+    ``history_check`` they are ranked by the whole history, every replacement explains it better than the particle
+    it replaces, and far fewer replacements contradict the free space."""
+    st = gmm_prior(torch.tensor([[0.0, 0.3, 0.0], [0.0, -0.3, math.pi / 2]]), 100, 0.02, 0.5,
+                   generator=torch.Generator().manual_seed(3))
+    free_z, free = torch.zeros(4, dtype=torch.bool), _free_fingers()
+    touch_z, touch = torch.ones(3, dtype=torch.bool), touching_finger()[None].repeat(3, 1, 1)
+    contradicting = {}
+    for check in (False, True):
+        b = TouchBelief.from_prior(box, st, TouchFilterConfig(history_check=check))
+        b.update(free_z, free, None, generator=torch.Generator().manual_seed(0), resample=False)
+        before = b.states.clone()
+        out = b.update(touch_z, touch, None, generator=torch.Generator().manual_seed(1))
+        assert out["resampled"] == "contact" and out["n_replaced"] >= 10
+        rep = out["replaced"]
+        d_free = robot_object_distance(box, b.states[rep], free).amin(1)  # (R,) nearest free-space finger
+        contradicting[check] = float((d_free < 0.002).double().mean())
+        if check:
+            # the acceptance rule, slot by slot, over both segments (states static: no rollout here)
+            assert bool((b.history_log_likelihood(b.states[rep]) > b.history_log_likelihood(before[rep])).all())
+    assert contradicting[False] >= 0.15, contradicting  # App. B as published brings such states back (0.40)
+    assert contradicting[True] <= 0.05, contradicting  # the check keeps them out (0.02)
+
+
+def test_history_check_does_not_dilute_a_belief_that_explains_the_contact(box):
+    """Half the prior lies at the truth, which the contact confirms: App. B as published still swaps half the
+    belief for contact candidates (uniform weights afterwards); with ``history_check`` a candidate must also beat
+    the belief's weighted median particle on the whole history, so few or none come in."""
+    st = gmm_prior(torch.tensor([[0.0, 0.0, 0.0], [-0.04, 0.0, math.pi / 2]]), 100, 0.04, 0.8,
+                   generator=torch.Generator().manual_seed(3))
+    replaced = {}
+    for check in (False, True):
+        b = TouchBelief.from_prior(box, st, TouchFilterConfig(history_check=check))
+        b.update(torch.zeros(4, dtype=torch.bool), _free_fingers(), None, generator=torch.Generator().manual_seed(0),
+                 resample=False)
+        out = b.update(torch.ones(3, dtype=torch.bool), touching_finger()[None].repeat(3, 1, 1), None,
+                       generator=torch.Generator().manual_seed(1))
+        assert out["resampled"] == "contact"
+        replaced[check] = out["n_replaced"]
+    assert replaced[False] >= 30 and replaced[True] <= 10, replaced  # 50 and 0 here

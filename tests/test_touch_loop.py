@@ -103,3 +103,25 @@ def test_touch_belief_settings_are_checked(tmp_path):
         run_episode(EpisodeConfig(task="mug-0", method="touch-ig", progress=False), tmp_path)
     with pytest.raises(ValueError, match="cannot run"):
         run_episode(EpisodeConfig(task="grasp-box-0", method="rumi", progress=False), tmp_path)
+
+
+def test_grasp_tasks_check_contact_candidates_against_the_history():
+    """The grasp tasks run with ``history_check`` (beyond App. B, TouchFilterConfig) unless ``--belief`` says
+    otherwise; the setting reaches the filter and is recorded as a task default."""
+    from activetouch.experiments.estimators import TouchEstimator
+    from activetouch.experiments.runner import task_belief_defaults
+    from activetouch.sim.grasp_env import make_grasp_env
+
+    assert task_belief_defaults("grasp-box-0") == {"history_check": True}
+    env = make_grasp_env("grasp-box-0", seed=0)
+    try:
+        on = TouchEstimator(env, EpisodeConfig(task="grasp-box-0", method="touch-ig", progress=False), "cpu")
+        off = TouchEstimator(env, EpisodeConfig(task="grasp-box-0", method="touch-ig", progress=False,
+                                                belief={"history_check": False}), "cpu")
+    finally:
+        env.close()
+    assert on.config.history_check and not off.config.history_check
+    with pytest.raises(ValueError, match="history_check"):
+        from activetouch.belief.touch_filter import TouchFilterConfig
+
+        TouchFilterConfig(history_check="yes")

@@ -144,7 +144,8 @@ def _register_grasp() -> None:
         desc = (f"touch-only: {spec.object_name} on a table, no camera, SE(2) belief, prior modes "
                 f"{spec.mode_separation:g} m apart, <= {spec.max_actions} pokes then a grasp; success: lifted")
         register_task(TaskEntry(name=name, family="grasp", description=desc, provides=GRASP_PROVIDES,
-                                make_env=_make_grasp(name), prior=grasp_prior, success=grasp_success))
+                                make_env=_make_grasp(name), prior=grasp_prior, success=grasp_success,
+                                belief_defaults=spec.belief_defaults))
 
 
 _register_grasp()

@@ -96,6 +96,14 @@ class TouchFilterConfig:
       rather than from the belief (see :meth:`TouchBelief.contact_candidates`).
     * ``mode_sigma_pos`` = 1 cm, ``mode_sigma_yaw`` = 0.1 rad: kernel of the maximum-likelihood state
       (:attr:`TouchBelief.best_state`), about the grasp's tolerance across the pads and in yaw.
+    * ``history_check`` = False (App. B as published): contact candidates are judged by the current contact
+      alone. True (beyond the paper; the grasp tasks' default): a candidate replaces a particle only when it
+      explains the *whole* observation history better (:meth:`TouchBelief.history_log_likelihood`) than that
+      particle and than the belief's weighted median particle, so resampling onto the contact neither brings back
+      states that earlier pokes ruled out nor fills the belief with candidates poorer than its typical particle.
+      Measured (touch-ig, grasp-box-0/1/2 seeds 0-3, static prediction, 2.5 N guard): 3/12 grasps without the
+      check, 9/12 against the replaced particle only, 10/12 with the median as well (README, Table I).
+    * ``history_segments`` = 15: the most recent segments kept for that check (the paper's 15 pokes).
     """
 
     num_particles: int = 100
@@ -123,11 +131,16 @@ class TouchFilterConfig:
     contact_local_share: float = 0.5
     mode_sigma_pos: float = 0.01
     mode_sigma_yaw: float = 0.1
+    history_check: bool = False
+    history_segments: int = 15
 
     def __post_init__(self):
         if not isinstance(self.contact, ContactModelConfig):
             raise ValueError(f"contact must be a ContactModelConfig, got {type(self.contact).__name__}")
-        for name in ("num_particles", "contact_samples", "projection_iterations", "prior_components"):
+        if not isinstance(self.history_check, bool):
+            raise ValueError(f"TouchFilterConfig.history_check must be true or false, got {self.history_check!r}")
+        for name in ("num_particles", "contact_samples", "projection_iterations", "prior_components",
+                     "history_segments"):
             v = getattr(self, name)
             lo = 0 if name == "projection_iterations" else 1
             if not isinstance(v, int) or isinstance(v, bool) or v < lo:
@@ -202,6 +215,7 @@ class TouchBelief:
                 raise ValueError("weights have no mass (they sum to zero)")
             lw = torch.log(w / w.sum())
         self._log_w = lw
+        self._history: list[tuple[torch.Tensor, torch.Tensor]] = []  # (z (K,), robot points (K, M, 3)) per segment
         self._check_invariants()
 
     @classmethod
@@ -318,6 +332,9 @@ class TouchBelief:
             self._states[:, 2] = wrap_angle(self._states[:, 2])
         if cfg.process_noise_pos > 0 or cfg.process_noise_yaw > 0:
             self._states = self._jitter(self._states, cfg.process_noise_pos, cfg.process_noise_yaw, generator)
+        if cfg.history_check:
+            self._history.append((zt.to(d.device), rp))
+            del self._history[:-cfg.history_segments]
         ess = self.ess()
         out = dict(ess=ess, ess_ratio=ess / P, resampled=None, n_replaced=0,
                    replaced=torch.zeros(0, dtype=torch.long, device=self._states.device), fallback=fallback,
@@ -427,6 +444,21 @@ class TouchBelief:
         sd = signed_robot_object_distance(self.obj, s, rp[None], cfg.table_height)[:, 0]
         return s, sd
 
+    @torch.no_grad()
+    def history_log_likelihood(self, states: torch.Tensor) -> torch.Tensor:
+        """``(n,)`` log-likelihood of the kept observation segments (``config.history_segments``, newest
+        included) for states ``(n, 3)`` held still over all of them: ``sum_s sum_k log P(z_{s,k} | d(x, robot_{s,k}))``
+        of Eq. 10. The particles' own history lives in their weights, but resampling resets those; this scores
+        candidates and the particles they would replace on equal terms. Approximation (stated): a state is held
+        where it is now over the past segments, so a box the pokes pushed by ``delta`` makes old contacts look
+        ``delta`` away for every state alike (the comparison stays fair; its absolute value drops)."""
+        cfg = self.config
+        total = torch.zeros(states.shape[0], dtype=self._states.dtype, device=self._states.device)
+        for z, rp in self._history:
+            d = robot_object_distance(self.obj, states.to(self._states), rp, cfg.table_height)  # (n, K)
+            total += contact_log_likelihood(z, d.T, cfg.contact).sum(0)
+        return total
+
     def resample_contact(self, robot_points, generator: torch.Generator | None = None,
                          last_distance: torch.Tensor | None = None, any_weight: bool = False) -> torch.Tensor:
         """Contact-aware resampling (App. B, after a contact observation); returns the replaced slots ``(R,)``.
@@ -440,6 +472,9 @@ class TouchBelief:
            its candidate matches the contact better than it does (higher ``P(z=1 | x)`` at ``last_distance``
            ``(P,)``, its distance at this waypoint; computed when None). ``any_weight``: every particle counts as
            low-weight (lowest first): for a contact that no particle explains, where the weights stay near uniform.
+           With ``config.history_check`` (beyond the paper) "better" means a higher log-likelihood of the whole kept
+           history (:meth:`history_log_likelihood`) than both the replaced particle and the belief's weighted
+           median particle, and candidates are ranked by it.
         3. The other ``P - R`` slots are filled by systematic importance resampling of the current particles
            (duplicates roughened), as in the no-contact case.
         4. Weights are set uniform (the paper: "immediately after resampling, the share of active particles would
@@ -458,6 +493,18 @@ class TouchBelief:
         score = contact_likelihood(one, sd[None], smooth)[0]
         score = torch.where(sd >= -cfg.max_penetration, score, torch.zeros_like(score))
         own = contact_likelihood(one, last_distance.to(self._states)[None], smooth)[0]
+        if cfg.history_check and self._history:
+            # the whole kept history decides, not the current contact alone (TouchFilterConfig.history_check)
+            score = torch.where(sd >= -cfg.max_penetration, self.history_log_likelihood(cand),
+                                torch.full_like(score, -math.inf))
+            own = self.history_log_likelihood(self._states)
+            # ... and must be at least as plausible as a typical particle of the belief (its weighted median):
+            # beating a ruled-out low-weight particle alone would fill up to half the belief with poor candidates
+            # at the uniform weights that follow
+            srt = torch.argsort(own)
+            cw = torch.cumsum(self.weights[srt], 0)
+            typical = own[srt[int(torch.searchsorted(cw, cw[-1] * 0.5).clamp_max(len(cw) - 1))]]
+            own = own.clamp_min(typical)
         w = self.weights
         low = torch.arange(P, device=w.device) if any_weight else (w * P < cfg.replace_below).nonzero().squeeze(1)
         low = low[torch.argsort(w[low], stable=True)]

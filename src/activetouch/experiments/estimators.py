@@ -266,9 +266,11 @@ class TouchEstimator:
         from activetouch.belief.contact_model import ContactModelConfig
         from activetouch.belief.touch_filter import TouchFilterConfig
 
+        from activetouch.registry import belief_settings
+
         self.env, self.cfg, self.device = env, cfg, torch.device(device)
         self.obj = env.object
-        overrides = dict(cfg.belief)
+        overrides = belief_settings(cfg.task, cfg.belief)  # the task's defaults, the user's win
         contact = {k[len("contact_"):]: overrides.pop(k) for k in list(overrides) if k.startswith("contact_")}
         if "num_particles" in overrides:
             raise ValueError("the particle count is set by --particles, not by belief=")

@@ -10,7 +10,7 @@ Phases, each optional (the ablations of Table I switch them off):
    every view, until the TIQF estimate changes by less than 5 mm and 2 deg between two views (or ``max_views``).
    Without ``active_vision`` the single first view is the *static vision* baseline.
 3. **Touch** (Sec. II-D-2): ``min_touches`` random touches at the visual estimate, then next best touches
-   (Eq. 25), until the estimate changes by less than 5 mm and 2 deg between two touches (or ``max_touches``).
+   (Eq. 25), until a next best touch changes the estimate by less than 5 mm and 2 deg (or ``max_touches``).
 
 Then a ``StopAction`` ends the episode. The planner reads the estimator's ``TiqfBelief`` and the last observation
 (``features``: the ``ClutterObservation`` the step returned).
@@ -312,7 +312,9 @@ class ClutterPlanner:
         if self.n_touches >= c.max_touches:
             self.phase, self.stop_reason = "stop", f"touch: {c.max_touches} touches"
             return None
-        if n_tac >= c.min_touches and getattr(obs, "kind", None) == "touch" and obs.success and self._stop_rule(belief):
+        # the stop rule judges next best touches (Sec. II-D-2: the random touches only initialise TIQF and NBT with
+        # >= 3 points): the change that the last random touch made says nothing about what a chosen one would make
+        if n_tac > c.min_touches and getattr(obs, "kind", None) == "touch" and obs.success and self._stop_rule(belief):
             self.phase, self.stop_reason = "stop", "touch: estimate changed < 5 mm and 2 deg"
             return None
         pose = belief.pose.detach().double()

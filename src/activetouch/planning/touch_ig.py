@@ -87,6 +87,7 @@ class TouchPlannerConfig:
     max_tries: int = 20  # draws per candidate until its poke target is in reach
     retreat_distance: float = 0.04
     retreat_height: float = 0.02
+    truncate: bool = True  # Alg. 1: execute the chosen poke up to its t*; False: the whole poke (an ablation)
 
     def __post_init__(self):
         for name in ("num_samples", "rho", "max_actions", "waypoints", "max_tries"):
@@ -99,6 +100,8 @@ class TouchPlannerConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"TouchPlannerConfig.{name} must be a finite number >= 0, got {v!r}")
+        if not isinstance(self.truncate, bool):
+            raise ValueError(f"TouchPlannerConfig.truncate must be true or false, got {self.truncate!r}")
         if self.predict not in ("rollout", "static"):
             raise ValueError(f"predict must be 'rollout' or 'static', got {self.predict!r}")
         if self.criterion not in ("ig", "uninformed", "max-contact"):
@@ -259,6 +262,8 @@ class TouchIGPlanner:
                 scale=self.se2_scale, periodic=entropy.SE2_PERIODIC)
             k = int(torch.argmax(res.gain))
             t_star, gain = int(res.t_star[k]), float(res.gain[k])
+            if not cfg.truncate:
+                t_star = len(cands[k])
             timings.update(weight_term=float(res.weight_term[k, t_star - 1]),
                            spatial_term=float(res.spatial_term[k, t_star - 1]))
         t4 = time.perf_counter()
