@@ -486,17 +486,14 @@ class TouchBelief:
         P = self.num_particles
         smooth = replace(cfg.contact, kind="smooth")
         rp = robot_points if torch.is_tensor(robot_points) else torch.as_tensor(robot_points)
-        if last_distance is None:
-            last_distance = robot_object_distance(self.obj, self._states, rp[None], cfg.table_height)[:, 0]
         cand, sd = self.contact_candidates(rp, generator)
-        one = torch.ones(1, dtype=torch.bool)
-        score = contact_likelihood(one, sd[None], smooth)[0]
-        score = torch.where(sd >= -cfg.max_penetration, score, torch.zeros_like(score))
-        own = contact_likelihood(one, last_distance.to(self._states)[None], smooth)[0]
+        shallow = sd >= -cfg.max_penetration
         if cfg.history_check and self._history:
-            # the whole kept history decides, not the current contact alone (TouchFilterConfig.history_check)
-            score = torch.where(sd >= -cfg.max_penetration, self.history_log_likelihood(cand),
-                                torch.full_like(score, -math.inf))
+            # the whole kept history decides, not the current contact alone (TouchFilterConfig.history_check).
+            # (Candidates and particles are scored in two calls: one call on both, concatenated, gave other floats
+            # here, which changed a grasp-box-1 episode; the two calls reproduce the measured Table I.)
+            ll = self.history_log_likelihood(cand)
+            score = torch.where(shallow, ll, torch.full_like(ll, -math.inf))
             own = self.history_log_likelihood(self._states)
             # ... and must be at least as plausible as a typical particle of the belief (its weighted median):
             # beating a ruled-out low-weight particle alone would fill up to half the belief with poor candidates
@@ -505,6 +502,13 @@ class TouchBelief:
             cw = torch.cumsum(self.weights[srt], 0)
             typical = own[srt[int(torch.searchsorted(cw, cw[-1] * 0.5).clamp_max(len(cw) - 1))]]
             own = own.clamp_min(typical)
+        else:
+            if last_distance is None:
+                last_distance = robot_object_distance(self.obj, self._states, rp[None], cfg.table_height)[:, 0]
+            one = torch.ones(1, dtype=torch.bool)
+            score = contact_likelihood(one, sd[None], smooth)[0]
+            score = torch.where(shallow, score, torch.zeros_like(score))
+            own = contact_likelihood(one, last_distance.to(self._states)[None], smooth)[0]
         w = self.weights
         low = torch.arange(P, device=w.device) if any_weight else (w * P < cfg.replace_below).nonzero().squeeze(1)
         low = low[torch.argsort(w[low], stable=True)]

@@ -265,7 +265,6 @@ class TouchEstimator:
     def __init__(self, env, cfg, device):
         from activetouch.belief.contact_model import ContactModelConfig
         from activetouch.belief.touch_filter import TouchFilterConfig
-
         from activetouch.registry import belief_settings
 
         self.env, self.cfg, self.device = env, cfg, torch.device(device)
