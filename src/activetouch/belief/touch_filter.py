@@ -102,7 +102,8 @@ class TouchFilterConfig:
       particle and than the belief's weighted median particle, so resampling onto the contact neither brings back
       states that earlier pokes ruled out nor fills the belief with candidates poorer than its typical particle.
       Measured (touch-ig, grasp-box-0/1/2, static prediction, 2.5 N guard): on seeds 0-3 3/12 grasps without
-      the check, 9/12 against the replaced particle only, 10/12 with the median too; on seeds 0-9 15/30 (README).
+      the check, 9/12 against the replaced particle only, 10/12 with the median too; on seeds 0-9 15/30 with 12
+      waypoints per poke, 20/30 with 36 (the planner's default since; README Table I).
     * ``history_segments`` = 15: the most recent segments kept for that check (the paper's 15 pokes).
     """
 
