@@ -63,11 +63,12 @@ class TouchPlannerConfig:
     Not in the paper (choices): ``waypoints`` K = 36 per candidate (the spline sampled at s = k/K). The waypoints
     are the time steps of Alg. 1 and of the filter: the environment reports one contact observation per waypoint
     and Eq. 10 re-weighs every particle there, so K sets how densely the free space a poke sweeps is observed (the
-    paper's z_t at every time step of the trajectory). At K = 12 a particle that a poke passes through is seen by
-    ~1-2 no-contact observations (each only 0.5 / 0.9 against it) and the kept history barely separated the true
-    state from the belief's median particle (by < 1 nat over 15 pokes, grasp-box-1 seed 2); at K = 36 touch-ig
-    grasped 20/30 instead of 15/30 and random pokes 15/30 instead of 18/30 (Table I in README; planning ~4.5x
-    slower, 7.7 s per poke at static prediction). ``--planner waypoints=12`` is the earlier setting.
+    paper's z_t at every time step of the trajectory). At K = 12 (about one observation per 2-3 cm of a poke) a particle
+    that a poke passes through is seen by a few no-contact observations, each only 0.5 / 0.9 against it, and the
+    kept history barely separated the true state from the belief's median particle (by < 1 nat over 15 pokes,
+    grasp-box-1 seed 2); at K = 36 touch-ig grasped 20/30 instead of 15/30 and random pokes 15/30 instead of 18/30
+    (Table I in README; planning ~4.5x slower, 7.7 s per poke at static prediction). ``--planner waypoints=12``
+    is the earlier setting.
     ``approach_distance`` = 0.15 m; ``min_poke_height`` = 0.03 m (targets lower than this are raised so the
     pads stay clear of the table: a table contact would be a false object contact); ``contact_tolerance`` =
     2 mm (the robot "reaches" a particle for its hypothetical observation); ``grasp_min_weight`` = 1e-4:
