@@ -19,7 +19,8 @@ candidate aimed at the *true* box, and executed in ``GraspEnv``. Prints, over al
 controllers. Measured on this 2-core CPU (grasp-box-0/1, seeds 0-3, 4 pokes each, K = 36 waypoints, 11 s):
 at the defaults the box moved median 4.1 mm, p90 11 mm, max 80 mm, 84 % of pokes above 2 mm (median 0.6 mm before
 the guard fired, 3.0 mm during the hold after it); peak ee force estimate median 6.9 N, p90 55 N; replay error
-median 0.00 mm but max 55 mm; 1 mm-neighbour spread median 3.3 mm, p90 11 mm. At ``--set max_ee_step=0.001``
+median 0.00 mm but max 55 mm (a kick left the box sliding at 0.6 m/s when the next poke began: replays start
+at rest); 1 mm-neighbour spread median 3.3 mm, p90 11 mm. At ``--set max_ee_step=0.001``
 (0.05 m/s instead of 0.2 m/s): median push 1.1 mm (31 % above 2 mm), neighbour spread median 1.9 mm but p90 20 mm,
 and one push of 257 mm that the replay missed by 268 mm.
 """
