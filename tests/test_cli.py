@@ -137,3 +137,13 @@ def test_table_refuses_mixed_settings_and_repeated_seeds(capsys, tmp_path):
     assert main(["table", str(tmp_path / "b" / "x")]) == 0
     out = capsys.readouterr().out
     assert "1 episodes" in out and "| mug-0 | rumi | 1/1 |" in out
+
+
+def test_table_header_names_the_code_that_made_the_episodes():
+    from activetouch.cli import _code_line
+
+    a = {"platform": {"commit": "a" * 40, "modified": False}}
+    b = {"platform": {"commit": "b" * 40, "modified": True}}
+    line = _code_line([a, a, b, {"platform": {"cpu": "x"}}, {"platform": {"commit": None, "modified": None}}])
+    assert line == ("code: commit aaaaaaaa (2 episodes), commit bbbbbbbb+modified (1 episodes), "
+                    "unrecorded (1 episodes), no git checkout (1 episodes)")

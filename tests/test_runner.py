@@ -96,6 +96,27 @@ def test_rerun_into_a_folder_replaces_its_figures_and_records_the_platform(tmp_p
     assert p["torch"] and p["mujoco"] and p["numpy"] and p["cpu"] and p["torch_threads"] >= 1
 
 
+def test_platform_records_the_code_that_ran():
+    # results kept across sessions (benchmarks/results) must say which code made them
+    import subprocess
+    from pathlib import Path
+
+    import activetouch
+    from activetouch.experiments.runner import platform_info
+
+    p = platform_info()
+    assert p["activetouch"] == activetouch.__version__
+    pkg = Path(activetouch.__file__).resolve().parent
+    try:
+        head = subprocess.run(["git", "-C", str(pkg), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+    except OSError:  # no git on this machine: nothing to compare against
+        head = None
+    if head is not None and head.returncode == 0:  # imported from a git checkout (CI's clean clone is one)
+        assert p["commit"] == head.stdout.strip() and isinstance(p["modified"], bool)
+    else:
+        assert p["commit"] is None and p["modified"] is None
+
+
 def test_first_view_of_mug2_leaves_the_yaw_open(tmp_path):
     # the demo's premise (activetouch demo runs mug-2): the handle faces away from the camera, so the camera-only
     # belief (CHSEL on X_0, Alg. 1 lines 1-3) cannot tell the yaw; measured 42-110 deg over seeds 0-4

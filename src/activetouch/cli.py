@@ -249,6 +249,21 @@ def cmd_sweep(a) -> int:
     return 0
 
 
+def _code_line(summaries) -> str:
+    """``code: commit 1a2b3c4d (30 episodes), unrecorded (5)``: which code made the episodes of a table
+    (``platform.commit`` in summary.json; ``+modified`` when the checkout's src/ differed from the commit)."""
+    from collections import Counter
+
+    def label(s) -> str:
+        p = s.get("platform") or {}
+        if not p.get("commit"):
+            return "unrecorded" if "commit" not in p else "no git checkout"
+        return f"commit {p['commit'][:8]}" + ("+modified" if p.get("modified") else "")
+
+    counts = Counter(label(s) for s in summaries)
+    return "code: " + ", ".join(f"{k} ({n} episodes)" for k, n in counts.most_common())
+
+
 def cmd_table(a) -> int:
     from activetouch.experiments.records import check_same_settings, load_summaries, settings_key
 
@@ -261,6 +276,7 @@ def cmd_table(a) -> int:
     settings = check_same_settings(summaries)
     print(f"{len(summaries)} episodes, settings {settings_key(summaries[0]['config'])}: "
           + ", ".join(f"{k}={v}" for k, v in settings.items()))
+    print(_code_line(summaries))
     print(_tables(summaries))
     if getattr(a, "grid", False):
         from activetouch.experiments.grid_table import grid_markdown

@@ -122,8 +122,41 @@ def task_belief_defaults(task: str) -> dict[str, Any]:
     return belief_settings(task, {})
 
 
+_CODE_VERSION: dict[str, Any] | None = None
+
+
+def code_version() -> dict[str, Any]:
+    """Which code ran: ``{"activetouch": version, "commit": git commit or None, "modified": bool or None}``.
+
+    ``commit`` is the ``HEAD`` of the git checkout the package is imported from (None for an installed wheel or
+    without git) and ``modified`` whether that checkout's ``src/`` differs from it. Recorded in every
+    ``summary.json`` so results kept across sessions (``benchmarks/results``) say which code made them; asked
+    once per process (two ``git`` calls)."""
+    global _CODE_VERSION
+    if _CODE_VERSION is None:
+        import subprocess
+
+        import activetouch
+
+        pkg = Path(activetouch.__file__).resolve().parent
+        commit = modified = None
+        try:
+            run = lambda *a: subprocess.run(["git", "-C", str(pkg), *a], capture_output=True, text=True,  # noqa: E731
+                                            timeout=10)
+            head = run("rev-parse", "HEAD")
+            if head.returncode == 0 and len(head.stdout.strip()) == 40:
+                commit = head.stdout.strip()
+                st = run("status", "--porcelain", "--", str(pkg))
+                modified = bool(st.stdout.strip()) if st.returncode == 0 else None
+        except (OSError, subprocess.SubprocessError):
+            pass
+        _CODE_VERSION = {"activetouch": activetouch.__version__, "commit": commit, "modified": modified}
+    return dict(_CODE_VERSION)
+
+
 def platform_info() -> dict[str, Any]:
-    """What makes two machines' numbers differ: CPU, library versions, threads (for ``summary.json``)."""
+    """What makes two machines' numbers differ: CPU, library versions, threads (for ``summary.json``), and which
+    code ran (:func:`code_version`)."""
     import platform
 
     import mujoco
@@ -140,7 +173,7 @@ def platform_info() -> dict[str, Any]:
     return {"cpu": cpu, "machine": platform.machine(), "system": platform.platform(), "python": platform.python_version(),
             "torch": torch.__version__, "mujoco": mujoco.__version__, "numpy": np.__version__,
             "torch_threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
-            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None, **code_version()}
 
 
 #: Figures any episode may write (removed before a re-run so a folder never shows another run's figures).
