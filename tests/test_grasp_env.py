@@ -254,6 +254,32 @@ def test_rollout_reproduces_true_motion_and_keeps_far_particles(env):
     assert out.dtype == torch.float64 and torch.allclose(out.float(), res.states, atol=1e-6)
 
 
+def test_settle_ends_each_poke_with_the_box_at_rest_and_replays_it():
+    # spec.settle_time: after a poke the arm holds while the box still moves, so the next poke (and every
+    # particle's rollout of it, which starts boxes at rest) begins from a resting box; the replay includes the hold.
+    # Fast pokes (0.4 m/s) with a one-period hold kick the box so that it is still sliding when the poke ends.
+    fast = dict(max_ee_step=0.008, stop_hold=1)
+    moving_without = []
+    for settle in (0.0, 1.0):
+        e = make_grasp_env("grasp-box-1", seed=0, settle_time=settle, **fast)
+        n_settle = int(round(settle / e.spec.control_dt))
+        try:
+            e.reset(seed=1)
+            for overshoot in (0.03, 0.05, 0.05):
+                x = e.true_state().copy()
+                obs, *_, info = e.step(PokeAction(side_poke(x, overshoot=overshoot)))
+                if settle == 0.0:
+                    moving_without.append(e._object_moving())
+                    continue
+                held_out = len(obs.ctrl) > n_settle and np.allclose(obs.ctrl[-n_settle:], obs.ctrl[-1])
+                assert not e._object_moving() or held_out  # at rest, or the whole settle time spent holding
+                replay = e.rollout(np.asarray([x]), obs)[0].numpy()
+                assert np.abs(replay[:, :2] - info["object_states"][1:, :2]).max() < 3e-3
+        finally:
+            e.close()
+    assert any(moving_without), "the fast pokes no longer leave the box moving: the test shows nothing"
+
+
 def test_rollout_skips_only_untouchable_particles(env):
     """Brute force (every particle simulated from the start) against the engine's skipping: particles it skips
     do not move in the brute-force run, simulated ones agree while the contact is short."""

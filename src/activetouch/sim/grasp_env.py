@@ -615,6 +615,12 @@ class GraspEnv:
         self._target = np.array(ctrl, float)
         return f
 
+    def _object_moving(self) -> bool:
+        """Whether the box moves faster than ``spec.settle_speed`` (m/s in the plane, 10 x that in rad/s)."""
+        v = self.data.qvel[self._obj_vadr:self._obj_vadr + 4]
+        lim = self.spec.settle_speed
+        return bool(math.hypot(v[0], v[1]) > lim or abs(v[3]) > 10 * lim)
+
     def _require_reset(self):
         if not self._reset_done:
             raise RuntimeError("call reset() before step()")
@@ -690,6 +696,15 @@ class GraspEnv:
             if i == plan.seg_end[seg]:
                 record(tn)
                 seg += 1
+        n_settle = int(round(s.settle_time / s.control_dt))
+        if n_settle > 0 and ctrl_done and self._object_moving():
+            # the box still slides or spins (a hard first contact): hold the last command until it is at rest, so
+            # the next poke (and every particle's rollout of it) starts from a resting box (spec.settle_time)
+            for _ in range(n_settle):
+                tn, _ = period(ctrl_done[-1])
+                if not self._object_moving():
+                    break
+            record(tn)
         self._n_actions += 1
         obs = TouchObservation(
             z=np.asarray(z_wp, bool), q=np.asarray(q_log), ee=np.asarray(ee_log), stopped_early=stopped,

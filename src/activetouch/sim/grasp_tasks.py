@@ -58,6 +58,13 @@ class GraspTaskSpec:
         max_ee_step, max_yaw_step: largest ee motion per control period (0.2 m/s, 2.5 rad/s).
         min_poke_height: poke waypoints' tip height is clipped to at least this (pokes stay above the table).
         stop_hold: control periods the arm holds still after a guarded stop.
+        settle_time: after a poke, hold the arm still for up to this long (s) while the box still moves (speed
+            above ``settle_speed`` m/s or 10 x that in rad/s), then record one more observation. 0 (the measured
+            default so far) ends the poke after ``stop_hold``: a hard first contact can leave the box sliding
+            (0.6 m/s and 15 rad/s seen, grasp-box-0 seed 0) when the next poke begins, while the particle rollouts
+            start every box at rest (that replay missed by 55 mm; ``activetouch bench poke-push``). Simplification
+            when on: the simulator ends the hold early from the box's true velocity, where a real robot would wait
+            the whole ``settle_time``.
         pregrasp_clearance: height of the pads' tips above the box top before the grasp descent.
         grasp_depth: how far below the box top the pads' tips go (pads are 0.07 m tall).
         grasp_guard_force: guarded grasp descent: a robot-box contact force above this while descending means a
@@ -94,6 +101,8 @@ class GraspTaskSpec:
     max_yaw_step: float = 0.05
     min_poke_height: float = 0.02
     stop_hold: int = 5
+    settle_time: float = 0.0
+    settle_speed: float = 0.001
     pregrasp_clearance: float = 0.06
     grasp_depth: float = 0.06
     grasp_guard_force: float = 10.0
@@ -129,6 +138,10 @@ class GraspTaskSpec:
             raise ValueError(f"contact_joints must be in 1..7, got {self.contact_joints}")
         if self.max_actions < 1 or self.max_waypoints < 1 or self.stop_hold < 0:
             raise ValueError("max_actions and max_waypoints must be >= 1 and stop_hold >= 0")
+        for k in ("settle_time", "settle_speed"):
+            v = getattr(self, k)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{k} must be finite and >= 0, got {v}")
 
     @property
     def substeps(self) -> int:
