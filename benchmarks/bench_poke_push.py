@@ -35,18 +35,10 @@ import numpy as np
 import torch
 
 from activetouch.belief.touch_filter import TouchFilterConfig
+from activetouch.cli import _key_values
 from activetouch.planning.touch_ig import TouchIGPlanner, TouchPlannerConfig
 from activetouch.sim.grasp_env import GraspEnv, PokeAction
 from activetouch.sim.grasp_tasks import get_grasp_spec
-
-
-def _value(text: str):
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return text
 
 
 def main() -> None:
@@ -58,18 +50,16 @@ def main() -> None:
     a = ap.parse_args()
     if a.seeds < 1 or a.pokes < 1:
         raise SystemExit("--seeds and --pokes must be >= 1")
-    overrides = {}
-    for item in a.set:
-        if "=" not in item:
-            raise SystemExit(f"--set expects FIELD=VALUE, got {item!r}")
-        k, v = item.split("=", 1)
-        overrides[k] = _value(v)
+    try:  # the CLI's KEY=VALUE parsing (--planner / --belief), and the spec's own checks, before any work
+        overrides = _key_values(a.set, "--set")
+        specs = [get_grasp_spec(task, **overrides) for task in a.tasks]
+    except (ValueError, TypeError) as e:
+        raise SystemExit(f"bench_poke_push: {e}") from None
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
     moved, before, during, force, replay, spread = [], [], [], [], [], []
     t0 = time.perf_counter()
-    for task in a.tasks:
-        spec = get_grasp_spec(task, **overrides)  # ValueError naming a bad field or value
+    for spec in specs:
         for seed in range(a.seeds):
             env = GraspEnv(spec, seed=seed)
             env.reset(seed=seed)
