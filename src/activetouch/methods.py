@@ -209,3 +209,32 @@ def make_rumi_touch_ig(env, belief_config, seed, **overrides):
     from activetouch.planning.particle_ig import ParticleIGPlanner
 
     return ParticleIGPlanner.from_env(env, belief_config, seed, **overrides)
+
+
+@register_belief("contact-particles", "mixed: the touch paper's binary-contact filter (Eq. 10 on the step's contact "
+                                      "flag, App. B contact-aware resampling) over SE(2) particles from RUMI's prior, "
+                                      "moved by the observed object motion", requires=("contact", "object-motion",
+                                                                                        "se2-object"))
+def make_contact_belief(env, cfg, device):
+    from activetouch.experiments.estimators import RummageContactEstimator
+
+    return RummageContactEstimator(env, cfg, device)
+
+
+@register_method("contact-slide", "mixed: the touch paper's binary-contact filter (belief contact-particles) with "
+                                  "RUMI's Slide baseline on the SE(2) rummaging tasks", belief="contact-particles",
+                 requires=("ee-delta-actions",))
+def make_contact_slide(env, belief_config, seed, **overrides):
+    from activetouch.planning.slide import SlidePlanner
+
+    return SlidePlanner.from_env(env, belief_config, seed, **overrides)
+
+
+@register_method("contact-touch-ig", "mixed: the touch paper's filter and planner on the SE(2) rummaging tasks: "
+                                     "binary-contact particles, pokes scored by expected IG (Alg. 1, Eq. 5, Eq. 10)",
+                 belief="contact-particles", requires=("ee-delta-actions",),
+                 quick={"num_candidates": 4, "waypoints": 3})
+def make_contact_touch_ig(env, belief_config, seed, **overrides):
+    from activetouch.planning.particle_ig import ParticleIGPlanner
+
+    return ParticleIGPlanner.from_env(env, belief_config, seed, **overrides)

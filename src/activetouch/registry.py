@@ -30,6 +30,7 @@ Kinds used by the built-in tasks (a task may add its own):
 ``object-motion``      the object's motion ``dT`` each step (observed in simulation; RUMI can estimate it)
 ``ee-delta-actions``   actions are end-effector deltas ``u in [-1, 1]^Nu`` (RUMI's action space)
 ``reachability``       a reachability map of the workspace (RUMI's C_R)
+``se2-object``         the object's pose is searched in SE(2) (x, y, yaw on its support; RUMI's mug, drill)
 ``contact-signal``     a binary joint-torque contact signal per waypoint (touch paper App. D-a)
 ``proprioception``     the robot's joint configurations along every action
 ``physics-rollout``    object hypotheses can be rolled out in the simulator under the executed motion

@@ -92,7 +92,8 @@ def _register_rummage() -> None:
     for name, spec in TASKS.items():
         desc = (f"RUMI: {spec.object_name}, actions={spec.action_space}, search={'SE(2)' if spec.se2 else 'SE(3)'}, "
                 f"r_w={spec.r_w}, T={spec.max_steps}, success: NLL < {spec.nll_threshold:g}")
-        register_task(TaskEntry(name=name, family="rummage", description=desc, provides=RUMMAGE_PROVIDES,
+        provides = RUMMAGE_PROVIDES | ({"se2-object"} if spec.se2 else set())  # SE(2) search: mug, drill
+        register_task(TaskEntry(name=name, family="rummage", description=desc, provides=provides,
                                 make_env=_make_rummage(name), prior=rummage_prior, success=rummage_success,
                                 belief_defaults=spec.belief_defaults))
 

@@ -628,3 +628,121 @@ class TiqfEstimator:
                                                     last["entropy_history"],
                                                     title=f"{task_name}: next best views (Eq. 19-24)"))
         return paths
+
+
+class RummageContactEstimator:
+    """The touch paper's binary-contact filter (Sec. V, Eq. 10, App. B) on RUMI's rummaging tasks (issue 11).
+
+    SE(2) particles ``(x, y, yaw)`` on the object's support plane, drawn from the task's prior (RUMI V-B, from the
+    first camera points; no CHSEL), re-weighed once per step by the step's binary contact flag with the proximity
+    model of Eq. 10, ``d`` = the distance between the gripper points ``h(q)`` at the end-effector pose after the step
+    and the object at each particle (``TouchBelief.update`` with one waypoint), contact-aware resampling around the
+    gripper after a contact (App. B). Prediction: every particle follows the observed object motion ``dT``
+    (``object-motion``; the rummaging tasks have no particle rollouts, unlike the grasp tasks' ``physics-rollout``).
+
+    Simplifications, named: one contact sample per step (the touch paper reads the signal at every waypoint); the
+    gripper alone stands for "the whole robot" (the rummaging tasks' robot is a floating gripper); the camera's
+    free and surface points after the first view are not used (that is RUMI's belief, not this one). Runs all
+    ``T`` steps (no APC termination): the task's success (NLL below the threshold at some step) is read as for RUMI.
+    """
+
+    FIGURES = ("curves.png",)
+    COLUMNS = ("n_contacts", "resample_kind", "n_replaced", "ess_ratio", "weight_entropy", "filter_s")
+
+    def __init__(self, env, cfg, device):
+        from activetouch.belief.contact_model import ContactModelConfig
+        from activetouch.belief.touch_filter import TouchFilterConfig
+
+        if not getattr(getattr(env, "spec", None), "se2", False):
+            raise ValueError(f"belief contact-particles needs an SE(2) task (x, y, yaw); {cfg.task} searches SE(3)")
+        self.env, self.cfg, self.device = env, cfg, torch.device(device)
+        self.obj = env.object
+        overrides = dict(cfg.belief)
+        contact = {k[len("contact_"):]: overrides.pop(k) for k in list(overrides) if k.startswith("contact_")}
+        bad = sorted({"num_particles", "table_height"} & set(overrides))
+        if bad:
+            raise ValueError(f"belief overrides {bad} are set by --particles and the task's prior, not by belief=")
+        try:
+            self.config = TouchFilterConfig(num_particles=cfg.particles, contact=ContactModelConfig(**contact),
+                                            **overrides)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"belief settings {cfg.belief}: {e} (TouchFilterConfig fields; contact model fields "
+                             "as contact_<name>)") from None
+        h, _ = env.gripper_points(spacing=env.spec.r_w)
+        self.gripper = torch.as_tensor(h, dtype=torch.float64)  # (M, 3) h(q) in the ee frame
+        self.belief = None
+        self.features = None
+        self.apc_stop = cfg.beta_t * self.obj.diagonal
+
+    @property
+    def poses(self) -> torch.Tensor:
+        """``(P, 4, 4)`` the SE(2) states, upright at the prior's height."""
+        from activetouch.belief.contact_model import se2_to_pose
+
+        return se2_to_pose(self.belief.states, self.config.table_height).to(torch.float32)
+
+    @property
+    def weights(self) -> torch.Tensor:
+        return self.belief.weights.to(torch.float32)
+
+    def initialise(self, task, obs, info, generator) -> dict[str, Any]:
+        from dataclasses import replace
+
+        from activetouch.belief.contact_model import pose_to_se2
+        from activetouch.belief.touch_filter import TouchBelief
+        from activetouch.observations import voxel_downsample
+
+        X = voxel_downsample(obs.features, r_free=self.env.spec.r_w, r_surface=self.env.spec.r_w)
+        prior = task.prior(self.env, self.cfg.particles, generator, self.device, features=X, obs=obs, info=info)
+        prior = prior.double()
+        if not bool(torch.all(prior[:, 2, 2] > 1 - 1e-6)):  # the filter's poses are upright: R = Rz(yaw)
+            raise ValueError(f"belief contact-particles needs an upright prior (rotations about z) on {self.cfg.task}")
+        states = pose_to_se2(prior)
+        self.config = replace(self.config, table_height=float(prior[:, 2, 3].mean()))
+        self.belief = TouchBelief.from_prior(self.obj, states, self.config)
+        self.features = X
+        return {"n_contacts": 0}
+
+    def observe(self, obs, info, ee_before, generator) -> dict[str, Any]:
+        from activetouch.belief.contact_model import pose_to_se2
+
+        t0 = time.perf_counter()
+        b = self.belief
+        traj = None
+        if obs.dT is not None:
+            dT = torch.as_tensor(np.asarray(obs.dT), dtype=torch.float64)
+            if _is_motion(dT, self.cfg.motion_tol_m, self.cfg.motion_tol_rad):
+                traj = pose_to_se2(dT @ self.poses.double())[:, None]  # (P, 1, 3) the particles moved by dT
+        ee = torch.as_tensor(np.asarray(obs.ee_pose), dtype=torch.float64)
+        pts = (self.gripper @ ee[:3, :3].T + ee[:3, 3])[None]  # (1, M, 3) the gripper after the step
+        z = torch.tensor([bool(obs.in_contact)])
+        diag = b.update(z, pts, traj, generator=generator)
+        self.features = obs.features
+        return {"resampled": diag.get("resampled") is not None, "resample_kind": diag.get("resampled") or "",
+                "n_replaced": int(diag.get("n_replaced", 0)), "ess_ratio": float(diag.get("ess_ratio", float("nan"))),
+                "n_contacts": int(z.sum()), "filter_s": time.perf_counter() - t0}
+
+    def metrics(self, info) -> dict[str, float]:
+        from activetouch.information import entropy
+
+        m = pose_metrics(self.obj, self.poses, self.weights, info["true_pose"])
+        return {**m, "weight_entropy": float(entropy.weight_entropy(self.belief.weights.detach().double().cpu()))}
+
+    def converged(self) -> bool:
+        return False
+
+    def summary(self) -> dict[str, Any]:
+        return {}
+
+    def snapshot(self, info, planner=None) -> dict[str, Any]:
+        return {}
+
+    def first_snapshot(self, info, planner=None) -> None:
+        return None
+
+    def write_figures(self, out, rows, snapshots, task_name: str, threshold: float | None) -> list:
+        from activetouch.experiments import plots
+
+        return [plots.curves_figure(out / "curves.png", rows, nll_threshold=threshold, apc_threshold=self.apc_stop,
+                                    title=f"{task_name}: binary-contact filter")]
+
