@@ -251,10 +251,28 @@ class RumiEstimator:
         return paths
 
 
-class TouchEstimator:
+class _RunsAllSteps:
+    """The parts of the estimator interface a belief without its own stop rule or snapshots shares: it never
+    converges (the planner or ``T`` ends the episode), adds nothing to the summary and keeps no snapshots."""
+
+    def converged(self) -> bool:
+        return False
+
+    def summary(self) -> dict[str, Any]:
+        return {}
+
+    def snapshot(self, info, planner=None) -> dict[str, Any]:
+        return {}
+
+    def first_snapshot(self, info, planner=None) -> None:
+        return None
+
+
+class TouchEstimator(_RunsAllSteps):
     """The touch paper's belief (Sec. V): SE(2) particles re-weighed by the binary joint-torque contact signal with
     the proximity model of Eq. 10, predicted by MuJoCo rollouts of the executed poke, contact-aware resampling
-    (App. B); prior: the task's two-component Gaussian mixture (App. D-c)."""
+    (App. B); prior: the task's two-component Gaussian mixture (App. D-c). The planner ends the episode with a grasp
+    (App. D-d, e)."""
 
     FIGURES = ("particles.png", "entropy.png")
     #: steps.csv columns beyond RUMI's
@@ -353,18 +371,6 @@ class TouchEstimator:
                 # the cracker box looks the same after a half turn: the grasp (pads across it) does not care
                 "yaw_err_mod180_deg": min(sym, 180.0 - sym),
                 "weight_entropy": h_w, "log_support_volume": h_v, "entropy": h_w + h_v}
-
-    def converged(self) -> bool:
-        return False  # the planner ends the episode with a grasp (App. D-d, e)
-
-    def summary(self) -> dict[str, Any]:
-        return {}
-
-    def snapshot(self, info, planner=None) -> dict[str, Any]:
-        return {}
-
-    def first_snapshot(self, info, planner=None) -> None:
-        return None
 
     def write_figures(self, out, rows, snapshots, task_name: str, threshold: float | None) -> list:
         from activetouch.experiments import touch_plots
@@ -630,7 +636,7 @@ class TiqfEstimator:
         return paths
 
 
-class RummageContactEstimator:
+class RummageContactEstimator(_RunsAllSteps):
     """The touch paper's binary-contact filter (Sec. V, Eq. 10, App. B) on RUMI's rummaging tasks (issue 11).
 
     SE(2) particles ``(x, y, yaw)`` on the object's support plane, drawn from the task's prior (RUMI V-B, from the
@@ -638,7 +644,8 @@ class RummageContactEstimator:
     model of Eq. 10, ``d`` = the distance between the gripper points ``h(q)`` at the end-effector pose after the step
     and the object at each particle (``TouchBelief.update`` with one waypoint), contact-aware resampling around the
     gripper after a contact (App. B). Prediction: every particle follows the observed object motion ``dT``
-    (``object-motion``; the rummaging tasks have no particle rollouts, unlike the grasp tasks' ``physics-rollout``).
+    (``object-motion``; the rummaging tasks have no particle rollouts, unlike the grasp tasks' ``physics-rollout``);
+    with ``--estimate-dT`` no motion is given and the particles stay where they are (no ObjMove here).
 
     Simplifications, named: one contact sample per step (the touch paper reads the signal at every waypoint); the
     gripper alone stands for "the whole robot" (the rummaging tasks' robot is a floating gripper); the camera's
@@ -727,18 +734,6 @@ class RummageContactEstimator:
 
         m = pose_metrics(self.obj, self.poses, self.weights, info["true_pose"])
         return {**m, "weight_entropy": float(entropy.weight_entropy(self.belief.weights.detach().double().cpu()))}
-
-    def converged(self) -> bool:
-        return False
-
-    def summary(self) -> dict[str, Any]:
-        return {}
-
-    def snapshot(self, info, planner=None) -> dict[str, Any]:
-        return {}
-
-    def first_snapshot(self, info, planner=None) -> None:
-        return None
 
     def write_figures(self, out, rows, snapshots, task_name: str, threshold: float | None) -> list:
         from activetouch.experiments import plots
