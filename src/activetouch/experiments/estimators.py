@@ -251,6 +251,24 @@ class RumiEstimator:
         return paths
 
 
+def touch_filter_config(settings: dict[str, Any], particles: int, given: dict[str, Any]):
+    """``TouchFilterConfig`` of belief ``settings`` (its fields; the contact model's as ``contact_<name>``, e.g.
+    ``contact_kind=binary``) with ``particles`` particles; ValueError naming the problem (``given``: the user's
+    ``--belief`` settings, for the message)."""
+    from activetouch.belief.contact_model import ContactModelConfig
+    from activetouch.belief.touch_filter import TouchFilterConfig
+
+    overrides = dict(settings)
+    contact = {k[len("contact_"):]: overrides.pop(k) for k in list(overrides) if k.startswith("contact_")}
+    if "num_particles" in overrides:
+        raise ValueError("the particle count is set by --particles, not by belief=")
+    try:
+        return TouchFilterConfig(num_particles=particles, contact=ContactModelConfig(**contact), **overrides)
+    except TypeError as e:
+        raise ValueError(f"belief settings {given}: {e} (TouchFilterConfig fields; contact model fields "
+                         "as contact_<name>, e.g. contact_kind=binary)") from None
+
+
 class _RunsAllSteps:
     """The parts of the estimator interface a belief without its own stop rule or snapshots shares: it never
     converges (the planner or ``T`` ends the episode), adds nothing to the summary and keeps no snapshots."""
@@ -281,22 +299,12 @@ class TouchEstimator(_RunsAllSteps):
                "n_replaced", "ess_ratio", "grasp_s", "sample_s", "ig_s", "rollout_s", "distance_s", "belief_rollout_s", "filter_s")
 
     def __init__(self, env, cfg, device):
-        from activetouch.belief.contact_model import ContactModelConfig
-        from activetouch.belief.touch_filter import TouchFilterConfig
         from activetouch.registry import belief_settings
 
         self.env, self.cfg, self.device = env, cfg, torch.device(device)
         self.obj = env.object
-        overrides = belief_settings(cfg.task, cfg.belief)  # the task's defaults, the user's win
-        contact = {k[len("contact_"):]: overrides.pop(k) for k in list(overrides) if k.startswith("contact_")}
-        if "num_particles" in overrides:
-            raise ValueError("the particle count is set by --particles, not by belief=")
-        try:
-            self.config = TouchFilterConfig(num_particles=cfg.particles, contact=ContactModelConfig(**contact),
-                                            **overrides)
-        except TypeError as e:
-            raise ValueError(f"belief settings {cfg.belief}: {e} (TouchFilterConfig fields; contact model fields "
-                             "as contact_<name>, e.g. contact_kind=binary)") from None
+        # the task's defaults, the user's win
+        self.config = touch_filter_config(belief_settings(cfg.task, cfg.belief), cfg.particles, cfg.belief)
         self.belief = None
         self.features = None
         self.se2_scale = None
@@ -657,24 +665,13 @@ class RummageContactEstimator(_RunsAllSteps):
     COLUMNS = ("n_contacts", "resample_kind", "n_replaced", "ess_ratio", "weight_entropy", "filter_s")
 
     def __init__(self, env, cfg, device):
-        from activetouch.belief.contact_model import ContactModelConfig
-        from activetouch.belief.touch_filter import TouchFilterConfig
-
         if not getattr(getattr(env, "spec", None), "se2", False):
             raise ValueError(f"belief contact-particles needs an SE(2) task (x, y, yaw); {cfg.task} searches SE(3)")
         self.env, self.cfg, self.device = env, cfg, torch.device(device)
         self.obj = env.object
-        overrides = dict(cfg.belief)
-        contact = {k[len("contact_"):]: overrides.pop(k) for k in list(overrides) if k.startswith("contact_")}
-        bad = sorted({"num_particles", "table_height"} & set(overrides))
-        if bad:
-            raise ValueError(f"belief overrides {bad} are set by --particles and the task's prior, not by belief=")
-        try:
-            self.config = TouchFilterConfig(num_particles=cfg.particles, contact=ContactModelConfig(**contact),
-                                            **overrides)
-        except (TypeError, ValueError) as e:
-            raise ValueError(f"belief settings {cfg.belief}: {e} (TouchFilterConfig fields; contact model fields "
-                             "as contact_<name>)") from None
+        if "table_height" in cfg.belief:
+            raise ValueError("belief table_height is set by the task's prior, not by belief=")
+        self.config = touch_filter_config(dict(cfg.belief), cfg.particles, cfg.belief)
         h, _ = env.gripper_points(spacing=env.spec.r_w)
         self.gripper = torch.as_tensor(h, dtype=torch.float64)  # (M, 3) h(q) in the ee frame
         self.belief = None
