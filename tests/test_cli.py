@@ -111,7 +111,10 @@ def test_box_episode_run_before_the_task_defaults_changed_is_not_resumed(capsys,
     from activetouch.experiments.records import write_json_atomic
     from activetouch.experiments.runner import task_belief_defaults
 
-    assert task_belief_defaults("box-0") == {"reinvigorate": 100} and task_belief_defaults("mug-0") == {}
+    assert task_belief_defaults("box-0", "rumi") == {"reinvigorate": 100}
+    assert task_belief_defaults("mug-0", "rumi") == {}
+    # the task's defaults are RUMI belief settings: a method with another belief runs (and records) without them
+    assert task_belief_defaults("box-0", "contact-slide") == {}
     _fake_episode(tmp_path, "box-0", "rumi", 0)  # no task_belief_defaults recorded: the old default
     assert main(["sweep", "--tasks", "box-0", "--seeds", "1", "--out", str(tmp_path)]) == 2
     assert "belief settings with the task's defaults: {} != {'reinvigorate': 100}" in _err(capsys)

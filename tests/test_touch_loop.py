@@ -112,7 +112,7 @@ def test_grasp_tasks_check_contact_candidates_against_the_history():
     from activetouch.experiments.runner import task_belief_defaults
     from activetouch.sim.grasp_env import make_grasp_env
 
-    assert task_belief_defaults("grasp-box-0") == {"history_check": True}
+    assert task_belief_defaults("grasp-box-0", "touch-ig") == {"history_check": True}
     env = make_grasp_env("grasp-box-0", seed=0)
     try:
         on = TouchEstimator(env, EpisodeConfig(task="grasp-box-0", method="touch-ig", progress=False), "cpu")

@@ -215,8 +215,9 @@ def test_scene_renders_in_headless_chromium(served, tmp_path):
 
     assert connected, "the browser never opened viser's websocket"
     assert shot.shape == before.shape == (700, 1000, 3)
-    # not blank: many colours, and far from one flat colour
-    assert shot.std() > 20, shot.std()
+    # not blank: far from one flat colour (the viewer's page is mostly white background, so the pixel std of a
+    # rendered scene is ~20 on CI and a blank page's is ~0: 8 leaves margin for other GPUs/fonts), many colours
+    assert shot.std() > 8, shot.std()
     assert len(np.unique(shot.reshape(-1, 3)[::7], axis=0)) > 200
     # the scene drew: a large share of the 3-D view (left of the GUI panel) differs from the empty viewer's page
     view = np.s_[150:, :650]
@@ -226,8 +227,13 @@ def test_scene_renders_in_headless_chromium(served, tmp_path):
     px = shot[view].reshape(-1, 3)
     grey = (np.abs(px - viewer.COLOURS["object"]).max(-1) < 45) & (px.max(-1) - px.min(-1) < 25) & (px.max(-1) < 190)
     assert grey.mean() > 0.002, grey.mean()
-    saturated = (px.max(-1) - px.min(-1)) > 60
-    assert saturated.mean() > 0.01, saturated.mean()
+    # coloured: a clear spread between channels, in a hue other than the table's (r >= g >= b). Chromium 156's
+    # SwiftShader lights the scene brightly (pale colours: the pink bottle's spread is ~50), so the spread bar is
+    # 30, not the 60 of full colours; measured here 0.11 of the view, the empty page 0.001
+    spread = px.max(-1) - px.min(-1)
+    table_hue = (px[:, 0] >= px[:, 1]) & (px[:, 1] >= px[:, 2])
+    coloured = (spread > 30) & ~table_hue
+    assert coloured.mean() > 0.02, coloured.mean()
 
 
 def test_live_viewer_follows_a_running_episode(tmp_path):

@@ -8,7 +8,7 @@
     activetouch table runs/sweep               results next to the paper's Tables V/VI
     activetouch report runs/sweep              Tables V, VI, VII as CSV + Markdown and the Fig. 16 NLL curves
     activetouch demo                           RUMI on mug-2 with figures (the README's demo)
-    activetouch bench {belief,step,planning,touch-ig,touch-step,grasp-env,poke-push,touch-ablation,tiqf,all}
+    activetouch bench {belief,step,planning,touch-ig,touch-step,grasp-env,poke-push,touch-ablation,tiqf,clutter,nbt,first-view,all}
     activetouch run grasp-box-0 --method touch-ig   the touch paper: poke, localise, grasp
     activetouch replay runs/mug0/episode.h5 [--method M]   re-run an estimator offline on a recorded episode
 """
@@ -367,7 +367,7 @@ def cmd_show(a) -> int:
 
 #: ``activetouch bench NAME`` runs ``benchmarks/bench_NAME.py`` (hyphens for underscores)
 BENCHMARKS = ("belief", "step", "planning", "touch-ig", "touch-step", "grasp-env", "poke-push", "touch-ablation", "tiqf",
-              "clutter", "nbt")
+              "clutter", "nbt", "first-view")
 
 
 def _repo_benchmarks() -> Path:

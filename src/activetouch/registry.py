@@ -76,6 +76,8 @@ class TaskEntry:
         belief_defaults: ``((field, value), ...)`` belief settings the task runs with unless ``--belief`` overrides
             them (recorded in each summary as ``task_belief_defaults``: a resume or a table never mixes runs
             made under other task defaults).
+        defaults_belief: the belief those settings are for (``rumi-particles`` for the RUMI tasks): a method
+            with another belief runs without them (and records none), since its config has other fields.
     """
 
     name: str
@@ -86,6 +88,7 @@ class TaskEntry:
     prior: Callable[..., Any]
     success: Callable[..., dict[str, Any]]
     belief_defaults: tuple = ()
+    defaults_belief: str = ""
 
 
 @dataclass(frozen=True)
@@ -123,10 +126,13 @@ _BELIEFS: dict[str, BeliefEntry] = {}
 _METHODS: dict[str, MethodSpec] = {}
 
 
-def belief_settings(task: str, overrides: dict[str, Any]) -> dict[str, Any]:
-    """The belief settings a run of ``task`` uses beyond the method's defaults: the task's ``belief_defaults``
-    under the user's overrides (``--belief``)."""
-    return {**dict(get_task(task).belief_defaults), **dict(overrides)}
+def belief_settings(task: str, overrides: dict[str, Any], belief: str) -> dict[str, Any]:
+    """The settings a run of ``task`` with the belief named ``belief`` uses beyond the belief's defaults: the
+    task's ``belief_defaults`` when they are for that belief (``TaskEntry.defaults_belief``), under the user's
+    overrides (``--belief``)."""
+    entry = get_task(task)
+    defaults = dict(entry.belief_defaults) if entry.defaults_belief == belief else {}
+    return {**defaults, **dict(overrides)}
 
 
 def register_task(entry: TaskEntry) -> TaskEntry:

@@ -95,7 +95,7 @@ def _register_rummage() -> None:
         provides = RUMMAGE_PROVIDES | ({"se2-object"} if spec.se2 else set())  # SE(2) search: mug, drill
         register_task(TaskEntry(name=name, family="rummage", description=desc, provides=provides,
                                 make_env=_make_rummage(name), prior=rummage_prior, success=rummage_success,
-                                belief_defaults=spec.belief_defaults))
+                                belief_defaults=spec.belief_defaults, defaults_belief="rumi-particles"))
 
 
 _register_rummage()
@@ -146,7 +146,7 @@ def _register_grasp() -> None:
                 f"{spec.mode_separation:g} m apart, <= {spec.max_actions} pokes then a grasp; success: lifted")
         register_task(TaskEntry(name=name, family="grasp", description=desc, provides=GRASP_PROVIDES,
                                 make_env=_make_grasp(name), prior=grasp_prior, success=grasp_success,
-                                belief_defaults=spec.belief_defaults))
+                                belief_defaults=spec.belief_defaults, defaults_belief="touch-particles"))
 
 
 _register_grasp()

@@ -115,7 +115,7 @@ class RumiEstimator:
         try:
             from activetouch.registry import belief_settings
 
-            settings = belief_settings(cfg.task, cfg.belief)  # the task's defaults, the user's win
+            settings = belief_settings(cfg.task, cfg.belief, "rumi-particles")  # the task's defaults, the user's win
             self.config = BeliefConfig(num_particles=cfg.particles, se2=env.spec.se2,
                                        chsel_iterations=cfg.chsel_iterations, **settings)
         except (TypeError, ValueError) as e:
@@ -304,7 +304,7 @@ class TouchEstimator(_RunsAllSteps):
         self.env, self.cfg, self.device = env, cfg, torch.device(device)
         self.obj = env.object
         # the task's defaults, the user's win
-        self.config = touch_filter_config(belief_settings(cfg.task, cfg.belief), cfg.particles, cfg.belief)
+        self.config = touch_filter_config(belief_settings(cfg.task, cfg.belief, "touch-particles"), cfg.particles, cfg.belief)
         self.belief = None
         self.features = None
         self.se2_scale = None

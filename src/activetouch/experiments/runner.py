@@ -20,7 +20,7 @@ import torch
 
 from activetouch.experiments.records import (STEP_COLUMNS, StepWriter, effective_belief, is_finished, read_steps,
                                              write_json_atomic)
-from activetouch.registry import belief_settings
+from activetouch.registry import belief_settings, get_method
 
 log = logging.getLogger(__name__)
 
@@ -117,9 +117,10 @@ def check_config(cfg: EpisodeConfig, out_dir: str | Path | None = None):
     return task, method, env
 
 
-def task_belief_defaults(task: str) -> dict[str, Any]:
-    """The belief settings a registered task runs with unless ``--belief`` overrides them (``{}`` for most)."""
-    return belief_settings(task, {})
+def task_belief_defaults(task: str, method: str) -> dict[str, Any]:
+    """The belief settings a registered task runs ``method``'s belief with unless ``--belief`` overrides them
+    (``{}`` for most: only the task's own belief has task defaults, ``TaskEntry.defaults_belief``)."""
+    return belief_settings(task, {}, get_method(method).belief)
 
 
 _CODE_VERSION: dict[str, Any] | None = None
@@ -294,7 +295,7 @@ def run_episode(cfg: EpisodeConfig, out_dir: str | Path, on_step=None) -> dict[s
         "median_plan_s": float(np.median(plan_times)) if plan_times else None,
         "wall_s": time.perf_counter() - t_episode,
         "config": asdict(cfg),
-        "task_belief_defaults": task_belief_defaults(cfg.task),
+        "task_belief_defaults": task_belief_defaults(cfg.task, cfg.method),
         "platform": platform_info(),
     }
     if cfg.figures:  # before summary.json: a kill while plotting leaves an unfinished episode, not a figureless one
@@ -410,7 +411,7 @@ def run_sweep(tasks, methods, seeds, root, base: EpisodeConfig | None = None, wo
                 done = done_summary.get("config", {})
                 diff = settings_diff(done, asdict(cfg))
                 was = effective_belief(done_summary)
-                now = belief_settings(task, cfg.belief)
+                now = belief_settings(task, cfg.belief, get_method(method).belief)
                 if was != now:
                     diff = ", ".join(x for x in (diff, f"belief settings with the task's defaults: {was} != {now}")
                                      if x)
