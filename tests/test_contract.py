@@ -24,7 +24,7 @@ def _family_head(task: str) -> bool:
 def _suite_pairs(pairs):
     """The pairs the default suite runs: every pair on the family heads, and on each other task one of its
     methods, taken in turn (task i runs its (i mod n)-th method), so every task and every method runs and the
-    suite stays under its 10 minutes (all 116 pairs take ~6 min on 2 cores; these ~50 about 2.5).
+    suite stays under its 10 minutes (all 116 pairs take ~6 min on 2 cores; these 52 about 4).
     ``ACTIVETOUCH_CONTRACT=all`` runs every compatible pair (README, Tests)."""
     if os.environ.get("ACTIVETOUCH_CONTRACT", "") == "all":
         return list(pairs)

@@ -121,7 +121,6 @@ def test_first_view_of_mug2_leaves_the_yaw_open(tmp_path):
     # the demo's premise (activetouch demo runs mug-2): the handle faces away from the camera, so the camera-only
     # belief (CHSEL on X_0, Alg. 1 lines 1-3) cannot tell the yaw; measured 42-110 deg over seeds 0-4. One seed
     # here: CHSEL on mug-2's first view takes ~45 s on 2 cores (seed 1 is in benchmarks/bench_first_view.py)
-    for seed in (0,):
-        s = run_episode(EpisodeConfig(task="mug-2", method="scripted", seed=seed, steps=1, progress=False,
-                                      figures=False, planner={"actions": [[0, 0, 0]]}), tmp_path / str(seed))
-        assert s["initial_mean_rot_err_deg"] > 30.0, s["initial_mean_rot_err_deg"]
+    s = run_episode(EpisodeConfig(task="mug-2", method="scripted", seed=0, steps=1, progress=False,
+                                  figures=False, planner={"actions": [[0, 0, 0]]}), tmp_path)
+    assert s["initial_mean_rot_err_deg"] > 30.0, s["initial_mean_rot_err_deg"]
