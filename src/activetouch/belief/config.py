@@ -73,6 +73,9 @@ class BeliefConfig:
       resampled particles and each replaces a random particle with the Metropolis probability
       ``min(1, exp(-lam (C_p - C_i)))`` (a resample-move step). Needs the belief's ``proposal``
       (the task's prior sampler, set by the episode). The drill and box tasks turn it on (``TaskSpec.belief_defaults``).
+      ``reinvigorate_normals`` (default True): each placement also turns the draw about the world z axis so the
+      model's normal matches the observed patch's normal there (``reinvigorate.place_on_surface``); False places
+      with the drawn yaw (the first version of the proposals).
     """
 
     num_particles: int = 100
@@ -100,6 +103,7 @@ class BeliefConfig:
     chsel_max_points: int = 500
     reinvigorate: int = 0
     reinvigorate_share: float = 0.2
+    reinvigorate_normals: bool = True
 
     def __post_init__(self):
         def _pos(name, allow_zero=False):
@@ -119,6 +123,8 @@ class BeliefConfig:
             _pos(name)
         for name in ("sigma_t", "sigma_R", "violation_tolerance", "active_weight"):
             _pos(name, allow_zero=True)
+        if not isinstance(self.reinvigorate_normals, bool):
+            raise ValueError(f"BeliefConfig.reinvigorate_normals must be true or false, got {self.reinvigorate_normals!r}")
         if not (math.isfinite(float(self.reinvigorate_share)) and 0.0 < float(self.reinvigorate_share) <= 1.0):
             raise ValueError(f"BeliefConfig.reinvigorate_share must be in (0, 1], got {self.reinvigorate_share!r}")
         if self.resample_percentile is not None and not (0.0 < float(self.resample_percentile) <= 100.0):

@@ -97,6 +97,7 @@ class ParticleBelief:
         #: particles replaced by placed prior proposals at the last resample (0 when off or none won).
         self.last_reinvigorated = 0
         self._model_points: torch.Tensor | None = None  # (2000, 3) object surface samples for the placement
+        self._model_normals: torch.Tensor | None = None  # (2000, 3) their outward normals (None: no mesh)
         self._check_invariants()
 
     # ------------------------------------------------------------------ state
@@ -229,16 +230,19 @@ class ParticleBelief:
         tell apart, and APC stays high until it can.
         """
         from .discrepancy import SURFACE
-        from .reinvigorate import place_on_surface
+        from .reinvigorate import model_surface, place_on_surface
 
         cfg = self.config
         surface = features.positions[features.semantics == SURFACE]
         if surface.shape[0] == 0:
             return poses
         if self._model_points is None:
-            self._model_points = self.obj.sample_surface(2000, seed=0).to(poses)
+            pts, normals = model_surface(self.obj, 2000, seed=0)
+            self._model_points = pts.to(poses)
+            self._model_normals = None if normals is None else normals.to(poses)
         cand = check_poses(self.proposal(cfg.reinvigorate, generator), "proposal poses").to(poses)
-        cand = place_on_surface(self._model_points, cand, surface, generator)
+        cand = place_on_surface(self._model_points, cand, surface, generator,
+                                model_normals=self._model_normals if cfg.reinvigorate_normals else None)
         with torch.no_grad():
             if costs is None:
                 costs = self.discrepancy(features, poses)
