@@ -84,6 +84,32 @@ def test_push_moves_object_and_tactile_points_on_surface(env):
     assert moved > 0.03, f"push moved the mug only {moved:.3f} m"
 
 
+def test_tactile_points_are_the_contact_on_the_surface_not_the_pad_grid(env):
+    # the rigid pads hold a 3-D grid of points; those within 3 mm of the object lie 0-3 mm outside it, a bias
+    # that let a face placed through the band fit a contact patch better than the true pose. The sensor
+    # reports each such pad point at its closest surface point (a conforming membrane's view of the contact).
+    from activetouch.sim.tactile import TactileSensor
+
+    env.reset()
+    _drive_to(env, (0.33, -0.005))
+    for _ in range(3):
+        env.step(np.array([1.0, 0.0, 0.0]))
+        if len(env.tactile.sense(env.ee_pose(), env.true_pose(), surface_only=True).surface) > 50:
+            break
+    ee, T = env.ee_pose(), env.true_pose()
+    on = env.tactile.sense(ee, T, surface_only=True).surface
+    grid = TactileSensor(env.object, band=env.tactile.band, project=False).sense(ee, T, surface_only=True).surface
+    assert len(on) == len(grid) > 50
+    v_on = _sdf_world(env, torch.as_tensor(on), T)
+    v_grid = _sdf_world(env, torch.as_tensor(grid), T)
+    # on the surface (a few points near a crease of the handle land up to ~0.5 mm off: one projection step)
+    assert v_on.abs().median().item() < 1e-5 and v_on.abs().max().item() < 1e-3
+    assert v_grid.mean().item() > 5e-4 and v_grid.abs().max().item() < 0.003 + 1e-5  # the outward bias removed
+    # each contact point is its grid point moved along the SDF gradient, by its distance (within the 3 mm band)
+    moved = np.linalg.norm(on - grid, axis=1)
+    assert np.median(np.abs(moved - v_grid.abs().double().numpy())) < 1e-5 and moved.max() < 0.003 + 1e-5
+
+
 def test_contacts_made_during_the_mini_steps_are_sensed(env):
     # brushing the mug sideways pushes it away within one action: without reading the pads after each mini step
     # the last contact step reported no surface point at all (touch read once, after settling)
