@@ -1,7 +1,8 @@
 """A registered (task, method) pair that declares itself compatible runs two steps of the one episode loop,
 keeps a finite, normalised belief of a fixed size and is deterministic for a seed (like gymnasium's check_env).
-The default suite runs every method on one task per object and one method on each other task (``_suite_pairs``);
-``ACTIVETOUCH_CONTRACT=all`` runs every compatible pair."""
+The default suite runs every method on one task per object and one method on each other task (``_suite_pairs``),
+and reruns each method once for determinism, at its first pair (``_RERUN``); ``ACTIVETOUCH_CONTRACT=all`` runs
+and reruns every compatible pair."""
 from __future__ import annotations
 
 import os
@@ -16,7 +17,7 @@ ALL_PAIRS = registry.compatible_pairs()
 
 def _family_head(task: str) -> bool:
     """One task per object of each family (mug-0, drill-0, box-0, grasp-box-0, clutter-mustard, clutter-soup-can):
-    every compatible method runs on it and is rerun for determinism; the other tasks share its code path."""
+    every compatible method runs on it; the other tasks share its code path."""
     obj = task.rsplit("-", 1)[0]
     return task == next(t for t in registry.tasks() if t.rsplit("-", 1)[0] == obj)
 
@@ -36,6 +37,10 @@ def _suite_pairs(pairs):
 
 
 PAIRS = _suite_pairs(ALL_PAIRS)
+# Determinism is a property of a method's code (its belief, planner and their seeding), so the default suite
+# reruns each method at its first pair only (19 reruns, not one per family-head pair: ~1.5 min less).
+_RERUN = set(PAIRS) if os.environ.get("ACTIVETOUCH_CONTRACT", "") == "all" else \
+    {next(p for p in PAIRS if p[1] == m) for m in dict.fromkeys(m for _, m in PAIRS)}
 
 
 def test_every_method_runs_somewhere():
@@ -50,7 +55,7 @@ def test_every_method_runs_somewhere():
 
 @pytest.mark.parametrize("task,method", PAIRS, ids=[f"{t}:{m}" for t, m in PAIRS])
 def test_pair_keeps_the_contract(task, method, tmp_path):
-    check_pair(task, method, tmp_path, seed=1, steps=2, repeat=_family_head(task))
+    check_pair(task, method, tmp_path, seed=1, steps=2, repeat=(task, method) in _RERUN)
 
 
 def test_incompatible_pair_is_refused_before_work(tmp_path):

@@ -8,7 +8,7 @@ from activetouch.experiments.runner import EpisodeConfig, run_episode
 
 
 # Few KMPPI samples and no CHSEL keep a run under half a minute; everything else is the paper's configuration.
-SHORT = dict(task="mug-0", method="rumi", seed=0, steps=12, use_chsel=False, progress=False,
+SHORT = dict(task="mug-0", method="rumi", seed=0, steps=6, use_chsel=False, progress=False,
              planner={"num_samples": 200, "rollout_samples": 3})
 
 
