@@ -105,6 +105,28 @@ def test_sweep_resumed_with_other_settings_is_refused(capsys, tmp_path):
     assert "other settings" in err and "steps: 40 != 30" in err
 
 
+def test_sweep_resumed_with_other_code_is_refused_unless_allowed(capsys, tmp_path):
+    """A code change can change every result without changing a setting: a finished episode whose recorded package
+    digest differs from the running code's is not reused unless --allow-other-code says so."""
+    import json
+
+    from activetouch.experiments.records import write_json_atomic
+    from activetouch.experiments.runner import code_version, source_digest
+
+    here = code_version()["source"]
+    assert here == source_digest() and len(here) == 16
+    d = _fake_episode(tmp_path, "mug-0", "rumi", 0)
+    s = json.loads((d / "summary.json").read_text())
+    write_json_atomic(d / "summary.json", {**s, "platform": {"source": "0" * 16}})
+    args = ["sweep", "--tasks", "mug-0", "--seeds", "1", "--no-figures", "--out", str(tmp_path)]
+    assert main(args) == 2
+    err = _err(capsys)
+    assert "other code" in err and "0" * 16 in err and here in err and "--allow-other-code" in err
+    assert main([*args, "--allow-other-code"]) == 0  # reused: nothing left to run
+    write_json_atomic(d / "summary.json", {**s, "platform": {"source": here}})
+    assert main(args) == 0  # the same code resumes
+
+
 def test_box_episode_run_before_the_task_defaults_changed_is_not_resumed(capsys, tmp_path):
     """box-* run with the contact-placed proposals (TaskSpec.belief_defaults); an episode recorded without them
     (an older sweep folder) must not be counted as finished by a resume, nor pooled with newer ones in a table."""

@@ -236,7 +236,7 @@ def cmd_sweep(a) -> int:
     summaries = run_sweep(a.tasks, methods, list(range(a.seed0, a.seed0 + a.seeds)), a.out,
                           base=EpisodeConfig(**{**base.__dict__, "figures": not a.no_figures}),
                           workers=a.workers, backend=backend, ray_address=a.ray_address, pairs=pairs,
-                          retries=a.retries)
+                          retries=a.retries, allow_other_code=a.allow_other_code)
     table = _tables(summaries)
     Path(a.out, "table.md").write_text(table + "\n")
     print(table)
@@ -447,6 +447,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="run on the existing Ray cluster at this address (e.g. ray://head:10001 or auto); implies "
                         "--backend ray; episode folders must be on storage every node sees")
     s.add_argument("--retries", type=int, default=2, help="Ray: re-runs of an episode whose worker died")
+    s.add_argument("--allow-other-code", action="store_true",
+                   help="resume a folder whose finished episodes were run by other package files (by default a "
+                        "resume refuses: a code change can change results without changing any setting)")
     _episode_args(s, method=False)
     s.set_defaults(func=cmd_sweep)
 

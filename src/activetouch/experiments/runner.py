@@ -126,11 +126,31 @@ def task_belief_defaults(task: str, method: str) -> dict[str, Any]:
 _CODE_VERSION: dict[str, Any] | None = None
 
 
+def source_digest() -> str:
+    """Short SHA-256 (16 hex digits) of every file of the imported ``activetouch`` package (code and assets, not
+    ``__pycache__``), by relative path and content: equal digests, the same code and data. Unlike the git commit it
+    does not change with a commit that touches only docs or tests, and it exists for an installed wheel too."""
+    import hashlib
+
+    import activetouch
+
+    pkg = Path(activetouch.__file__).resolve().parent
+    h = hashlib.sha256()
+    for f in sorted(pkg.rglob("*")):
+        if f.is_file() and "__pycache__" not in f.parts and f.suffix != ".pyc":
+            h.update(f.relative_to(pkg).as_posix().encode() + b"\0")
+            h.update(f.read_bytes())
+            h.update(b"\0")
+    return h.hexdigest()[:16]
+
+
 def code_version() -> dict[str, Any]:
-    """Which code ran: ``{"activetouch": version, "commit": git commit or None, "modified": bool or None}``.
+    """Which code ran: ``{"activetouch": version, "commit": git commit or None, "modified": bool or None,
+    "source": source_digest()}``.
 
     ``commit`` is the ``HEAD`` of the git checkout the package is imported from (None for an installed wheel or
-    without git) and ``modified`` whether that checkout's ``src/`` differs from it. Recorded in every
+    without git) and ``modified`` whether that checkout's ``src/`` differs from it; ``source`` is the digest of
+    the package's files (:func:`source_digest`), which a sweep's resume compares. Recorded in every
     ``summary.json`` so results kept across sessions (``benchmarks/results``) say which code made them; asked
     once per process (two ``git`` calls)."""
     global _CODE_VERSION
@@ -151,7 +171,8 @@ def code_version() -> dict[str, Any]:
                 modified = bool(st.stdout.strip()) if st.returncode == 0 else None
         except (OSError, subprocess.SubprocessError):
             pass
-        _CODE_VERSION = {"activetouch": activetouch.__version__, "commit": commit, "modified": modified}
+        _CODE_VERSION = {"activetouch": activetouch.__version__, "commit": commit, "modified": modified,
+                         "source": source_digest()}
     return dict(_CODE_VERSION)
 
 
@@ -365,11 +386,16 @@ def episode_dir(root: str | Path, task: str, method: str, seed: int) -> Path:
 
 def run_sweep(tasks, methods, seeds, root, base: EpisodeConfig | None = None, workers: int = 1,
               backend: str = "process", ray_address: str | None = None, pairs=None,
-              retries: int = 2) -> list[dict[str, Any]]:
+              retries: int = 2, allow_other_code: bool = False) -> list[dict[str, Any]]:
     """Run every (task, method, seed) episode, skipping finished ones (resume), in a local process pool
     (default) or on Ray (``backend='ray'``, optional extra ``activetouch[ray]``): a local Ray instance, or the
     existing cluster at ``ray_address``, one Ray task per episode retried up to ``retries`` times when its worker
-    dies. ``pairs``: run these ``(task, method)`` pairs instead of every task x method (``sweep --grid``)."""
+    dies. ``pairs``: run these ``(task, method)`` pairs instead of every task x method (``sweep --grid``).
+
+    A finished episode is reused only if it ran with the same settings (else ValueError) and, unless
+    ``allow_other_code``, with the same package files (``platform.source``, :func:`source_digest`; episodes that
+    predate the digest are not checked): a code change can change every result without changing a setting (the
+    contact-point fix moved box RUMI from 8/30 to 13/30), so a resume must not pool the two silently."""
     from activetouch.experiments.progress import progress
     from activetouch.experiments.records import load_summaries, settings_diff
 
@@ -418,6 +444,11 @@ def run_sweep(tasks, methods, seeds, root, base: EpisodeConfig | None = None, wo
                 if diff:  # a resume never mixes runs of different settings
                     raise ValueError(f"{d} holds an episode run with other settings ({diff}): resume with "
                                      "the same settings or sweep into another --out folder")
+                ran = (done_summary.get("platform") or {}).get("source")
+                if ran is not None and not allow_other_code and ran != (here := code_version()["source"]):
+                    raise ValueError(f"{d} holds an episode run by other code (package digest {ran}, this is {here}): "
+                                     "sweep into another --out folder, or pass --allow-other-code if the change "
+                                     "cannot affect these episodes")
                 continue
             jobs.append((cfg, d))
     log.info("%d episodes to run (%d already finished)", len(jobs), len(pairs) * len(seeds) - len(jobs))
