@@ -123,8 +123,12 @@ def test_sweep_resumed_with_other_code_is_refused_unless_allowed(capsys, tmp_pat
     err = _err(capsys)
     assert "other code" in err and "0" * 16 in err and here in err and "--allow-other-code" in err
     assert main([*args, "--allow-other-code"]) == 0  # reused: nothing left to run
-    write_json_atomic(d / "summary.json", {**s, "platform": {"source": here}})
+    write_json_atomic(d / "summary.json", {**s, "platform": {**s.get("platform", {}), "source": here}})
     assert main(args) == 0  # the same code resumes
+    capsys.readouterr()
+    assert main(["table", str(tmp_path)]) == 0 and f"files {here[:8]}" in capsys.readouterr().out  # names the digest
+    write_json_atomic(d / "summary.json", s)  # recorded before the digest existed: other code, unless allowed
+    assert main(args) == 2 and "records no package digest" in _err(capsys)
 
 
 def test_box_episode_run_before_the_task_defaults_changed_is_not_resumed(capsys, tmp_path):

@@ -136,6 +136,26 @@ def test_normal_aligned_placement_finds_the_true_orientation_far_more_often(box,
         shares[aligned] = float((_rot_err_mod_symmetry(placed[:, :3, :3], truth[:3, :3]) < math.radians(5))
                                 .double().mean())
     assert shares[False] < 0.04 and shares[True] > 0.10 and shares[True] > 5 * shares[False], shares
+    # the same generator state gives the same placements
+    g1, g2 = torch.Generator().manual_seed(7), torch.Generator().manual_seed(7)
+    prior = resting_face_prior(torch.tensor([*XY, 0.0]), box.mesh.vertices, n=50, generator=g1).double()
+    prior2 = resting_face_prior(torch.tensor([*XY, 0.0]), box.mesh.vertices, n=50, generator=g2).double()
+    assert torch.equal(place_on_surface(model.double(), prior, contact, g1, model_normals=normals.double()),
+                       place_on_surface(model.double(), prior2, contact, g2, model_normals=normals.double()))
+
+
+def test_normal_aligned_placement_without_a_plane_keeps_the_drawn_orientation(box):
+    """Fewer than 3 observed points fit no plane (zero normal): no normal condition and no turn, so a placement
+    keeps its drawn rotation and any model point at the contact's height qualifies, as without normals."""
+    model, normals = model_surface(box, 2000, seed=0)
+    g = torch.Generator().manual_seed(2)
+    prior = resting_face_prior(torch.tensor([*XY, 0.0]), box.mesh.vertices, n=40, generator=g).double()
+    contact = torch.tensor([[0.43, -0.15, 0.03], [0.44, -0.15, 0.03]], dtype=torch.float64)
+    placed = place_on_surface(model.double(), prior, contact, g, model_normals=normals.double())
+    assert torch.equal(placed[:, :3, :3], prior[:, :3, :3])
+    reachable = (transform_points(prior, model.double())[..., 2] - 0.03).abs().min(dim=1).values <= 0.005
+    moved = (placed[:, :2, 3] - prior[:, :2, 3]).norm(dim=1) > 0
+    assert bool(reachable.any()) and torch.equal(moved, reachable)
 
 
 def test_place_on_surface_rejects_bad_shapes(box):

@@ -250,15 +250,17 @@ def cmd_sweep(a) -> int:
 
 
 def _code_line(summaries) -> str:
-    """``code: commit 1a2b3c4d (30 episodes), unrecorded (5)``: which code made the episodes of a table
-    (``platform.commit`` in summary.json; ``+modified`` when the checkout's src/ differed from the commit)."""
+    """``code: commit 1a2b3c4d files 0123abcd (30 episodes), unrecorded (5)``: which code made the episodes of a
+    table (``platform.commit`` in summary.json; ``+modified`` when the checkout's src/ differed from the commit;
+    ``files``: the package digest ``platform.source``, which differs whenever the code or data did)."""
     from collections import Counter
 
     def label(s) -> str:
         p = s.get("platform") or {}
+        files = f" files {p['source'][:8]}" if p.get("source") else ""
         if not p.get("commit"):
-            return "unrecorded" if "commit" not in p else "no git checkout"
-        return f"commit {p['commit'][:8]}" + ("+modified" if p.get("modified") else "")
+            return ("unrecorded" if "commit" not in p else "no git checkout") + files
+        return f"commit {p['commit'][:8]}" + ("+modified" if p.get("modified") else "") + files
 
     counts = Counter(label(s) for s in summaries)
     return "code: " + ", ".join(f"{k} ({n} episodes)" for k, n in counts.most_common())

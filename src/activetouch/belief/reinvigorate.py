@@ -16,7 +16,8 @@ particle drawn at random with the Metropolis probability of the posterior (Eq. 1
 particles thus enters the set, APC stays high while such alternatives exist, and APC termination then means
 what Section V-J hopes it means: "pose particles likely only converge when p(T*|X) is high".
 
-With ``align_normals`` (the default, :func:`surface_normals` / :func:`model_surface`) a placement also turns
+With model normals (``BeliefConfig.reinvigorate_normals``, the default; :func:`surface_normals` /
+:func:`model_surface`) a placement also turns
 the hypothesis about the world z axis so that the model's outward normal at the chosen model point matches the
 observed patch's normal at the chosen observed point (a plane fit of its nearest observed neighbours, sign
 drawn at random, since which side the object lies on is not known from the points alone; the wrong side puts
@@ -115,8 +116,9 @@ def place_on_surface(model_points: torch.Tensor, poses: torch.Tensor, surface: t
             raise ValueError(f"model_normals must have shape {tuple(m.shape)}, got {tuple(nm.shape)}")
         sign = torch.randint(0, 2, (K,), generator=generator, device=gdev).to(T.device).to(T.dtype) * 2 - 1
         want = surface_normals(s, target) * sign[:, None]  # (K, 3) outward normal the object should have there
+        known = want.norm(dim=1) > 0.5  # no plane (fewer than 3 observed points): no normal condition, no turn
         wn = torch.einsum("kij,mj->kmi", T[:, :3, :3], nm)  # (K, M, 3) model normals in world axes
-        ok = ok & ((wn[..., 2] - want[:, None, 2]).abs() <= float(normal_tol))
+        ok = ok & (~known[:, None] | ((wn[..., 2] - want[:, None, 2]).abs() <= float(normal_tol)))
     u = torch.rand(K, M, generator=generator, device=gdev, dtype=T.dtype).to(T.device)
     j = torch.argmax(torch.where(ok, u, torch.full_like(u, -1.0)), dim=1)  # a random qualifying point
     has = ok.any(dim=1)
@@ -125,7 +127,7 @@ def place_on_surface(model_points: torch.Tensor, poses: torch.Tensor, surface: t
     if align:  # turn about world z so the horizontal parts of the two normals point the same way
         a, b = want[:, :2], wn[ar, j, :2]
         turn = torch.atan2(a[:, 1], a[:, 0]) - torch.atan2(b[:, 1], b[:, 0])
-        flat = (a.norm(dim=1) < 0.2) | (b.norm(dim=1) < 0.2) | ~has  # a horizontal face: any yaw fits
+        flat = (a.norm(dim=1) < 0.2) | (b.norm(dim=1) < 0.2) | ~has | ~known  # a horizontal face: any yaw fits
         turn = torch.where(flat, torch.zeros_like(turn), turn)
         c, sn = torch.cos(turn), torch.sin(turn)
         Rz = torch.zeros(K, 3, 3, dtype=T.dtype, device=T.device)

@@ -126,10 +126,16 @@ def task_belief_defaults(task: str, method: str) -> dict[str, Any]:
 _CODE_VERSION: dict[str, Any] | None = None
 
 
-def source_digest() -> str:
-    """Short SHA-256 (16 hex digits) of every file of the imported ``activetouch`` package (code and assets, not
-    ``__pycache__``), by relative path and content: equal digests, the same code and data. Unlike the git commit it
-    does not change with a commit that touches only docs or tests, and it exists for an installed wheel too."""
+#: Files of the package that cannot change a result: left out of :func:`source_digest`.
+_NOT_CODE = {".pyc", ".md", ".txt", ".orig", ".rej", ".swp", ".bak"}
+
+
+def source_digest() -> str | None:
+    """Short SHA-256 (16 hex digits) of the imported ``activetouch`` package's code and data files (not
+    ``__pycache__``, hidden files or :data:`_NOT_CODE` such as the assets' README and SOURCE notes), by relative path
+    and content: equal digests, the same code and data. Unlike the git commit it does not change with a commit
+    that touches only docs, tests or benchmarks, and it exists for an installed wheel too. None if a file cannot
+    be read."""
     import hashlib
 
     import activetouch
@@ -137,9 +143,14 @@ def source_digest() -> str:
     pkg = Path(activetouch.__file__).resolve().parent
     h = hashlib.sha256()
     for f in sorted(pkg.rglob("*")):
-        if f.is_file() and "__pycache__" not in f.parts and f.suffix != ".pyc":
-            h.update(f.relative_to(pkg).as_posix().encode() + b"\0")
-            h.update(f.read_bytes())
+        rel = f.relative_to(pkg)
+        if f.is_file() and "__pycache__" not in rel.parts and f.suffix not in _NOT_CODE \
+                and not any(p.startswith(".") for p in rel.parts):
+            h.update(rel.as_posix().encode() + b"\0")
+            try:
+                h.update(f.read_bytes())
+            except OSError:
+                return None
             h.update(b"\0")
     return h.hexdigest()[:16]
 
@@ -393,9 +404,10 @@ def run_sweep(tasks, methods, seeds, root, base: EpisodeConfig | None = None, wo
     dies. ``pairs``: run these ``(task, method)`` pairs instead of every task x method (``sweep --grid``).
 
     A finished episode is reused only if it ran with the same settings (else ValueError) and, unless
-    ``allow_other_code``, with the same package files (``platform.source``, :func:`source_digest`; episodes that
-    predate the digest are not checked): a code change can change every result without changing a setting (the
-    contact-point fix moved box RUMI from 8/30 to 13/30), so a resume must not pool the two silently."""
+    ``allow_other_code``, with the same package files (``platform.source``, :func:`source_digest`; an episode that
+    records no digest, run before activetouch recorded one, counts as other code): a code change can change every
+    result without changing a setting (the contact-point fix moved box RUMI from 8/30 to 13/30), so a resume must
+    not pool the two silently."""
     from activetouch.experiments.progress import progress
     from activetouch.experiments.records import load_summaries, settings_diff
 
@@ -445,10 +457,12 @@ def run_sweep(tasks, methods, seeds, root, base: EpisodeConfig | None = None, wo
                     raise ValueError(f"{d} holds an episode run with other settings ({diff}): resume with "
                                      "the same settings or sweep into another --out folder")
                 ran = (done_summary.get("platform") or {}).get("source")
-                if ran is not None and not allow_other_code and ran != (here := code_version()["source"]):
-                    raise ValueError(f"{d} holds an episode run by other code (package digest {ran}, this is {here}): "
-                                     "sweep into another --out folder, or pass --allow-other-code if the change "
-                                     "cannot affect these episodes")
+                here = code_version()["source"]
+                if not allow_other_code and (ran is None or here is None or ran != here):
+                    what = f"package digest {ran}, this is {here}" if ran is not None else \
+                        "it records no package digest: run by an activetouch older than the digest"
+                    raise ValueError(f"{d} holds an episode run by other code ({what}): sweep into another --out "
+                                     "folder, or pass --allow-other-code if the change cannot affect these episodes")
                 continue
             jobs.append((cfg, d))
     log.info("%d episodes to run (%d already finished)", len(jobs), len(pairs) * len(seeds) - len(jobs))

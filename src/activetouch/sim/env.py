@@ -12,8 +12,9 @@ quasi-static. Targets the arm cannot reach end where the arm stops: IK returns t
 joint-limited approximation and the gripper moves continuously, it never teleports.
 
 Sensing after each step (``Observation.features``, the new ``X'_t`` only):
-- tactile (``tactile.TactileSensor``): surface points of ``h_I(q)`` within 3 mm of the true object
-  surface and the gripper's other interior points as free space;
+- tactile (``tactile.TactileSensor``): the points of ``h_I(q)`` within 3 mm of the true object surface,
+  each reported at its closest point on that surface (the contact), and the gripper's other interior points as
+  free space;
 - the depth camera (``camera.cast_rays``) at reset (and every step if ``camera_every_step``);
 - at reset of tasks with ``floor_free_points``: free points just below the table top.
 ``Observation.dT`` is the object's world-frame motion over the step, ``T_new = dT @ T_old``

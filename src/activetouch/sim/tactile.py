@@ -91,7 +91,7 @@ class TactileSensor:
         touch = np.abs(v) < self.band
         if self.project:  # the contact on the object's surface (closest point of the exact SDF), then to world
             # (one step: near a crease the mesh SDF's gradient is a face normal, not the direction to the closest
-            # point, and a few points land up to ~0.5 mm off the surface; the rest within 1e-5 mm)
+            # point, and a few points land up to ~0.5 mm off the surface; the rest within ~1e-5 mm, 1e-8 m)
             on = pad_obj[touch] - v[touch, None] * g[touch]
             surface = on @ obj_pose[:3, :3].T + obj_pose[:3, 3]
         else:
