@@ -324,3 +324,13 @@ def test_cuda_matches_cpu():
     a = expected_information_gain(cpu, torch.tensor([0.05, 0.05, 0.3]), dirs, 1.0)
     b = expected_information_gain(gpu, torch.tensor([0.05, 0.05, 0.3]), dirs, 1.0)
     assert b.is_cuda and torch.allclose(a, b.cpu(), rtol=1e-4)
+
+
+def test_float32_corners_give_the_float64_grid():
+    # 0.1f = 0.1000000015: ceil((upper - lower) / res) must not add a cell for the corners' float32 rounding
+    # (a CUDA test built its grid from float32 tensors and got 11 cells where the float64 box has 10)
+    a = OccupancyGrid(torch.zeros(3), torch.full((3,), 0.1), OccupancyConfig(resolution=0.01))
+    b = _grid(n=10, res=0.01)
+    assert a.shape == b.shape == (10, 10, 10)
+    c = OccupancyGrid([0.0] * 3, [0.1005] * 3, OccupancyConfig(resolution=0.01))  # half a mm more: one more cell
+    assert c.shape == (11, 11, 11)

@@ -123,6 +123,6 @@ def resting_face_prior(mean, vertices, sigma: float = 0.05, n: int = 100, table_
     z = table_z - (verts @ R.transpose(1, 2))[..., 2].min(dim=1).values  # lowest point on the table
     T = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
     T[:, :3, :3] = R
-    T[:, :2, 3] = m[:2].to(torch.float64) + xy
+    T[:, :2, 3] = m[:2].to("cpu", torch.float64) + xy  # built on the CPU, moved to mean's device below
     T[:, 2, 3] = z
     return T.to(device=m.device, dtype=m.dtype)

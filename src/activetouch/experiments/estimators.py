@@ -78,6 +78,7 @@ def pose_metrics(obj, poses: torch.Tensor, w: torch.Tensor, true_pose) -> dict[s
     """Metrics of any pose belief against the true pose ``(4, 4)``: NLL (Eq. 32), APC (Eq. 33), active share,
     the best particle's translation / rotation error and the weighted rotation error over all particles."""
     T = _as_tensor(true_pose, poses.device)
+    w = w.to(poses.device)  # a belief may keep its weights on another device (TIQF's pose samples)
     best = poses[torch.argmax(w)]
     return {
         "nll": float(metrics.nll(obj, poses, w, T)),
@@ -412,7 +413,7 @@ class TiqfBelief:
 
     @property
     def weights(self) -> torch.Tensor:
-        return torch.ones(1)
+        return torch.ones(1, device=self.poses.device)  # beside the poses (CUDA when the belief is there)
 
 
 def _quat_left(q: torch.Tensor) -> torch.Tensor:
@@ -486,7 +487,7 @@ class TiqfEstimator:
 
     @property
     def weights(self) -> torch.Tensor:
-        return torch.ones(1)
+        return torch.ones(1, device=self.poses.device)  # beside the poses (CUDA when the belief is there)
 
     def initialise(self, task, obs, info, generator) -> dict[str, Any]:
         from activetouch.belief.tiqf import initial_state

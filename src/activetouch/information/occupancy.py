@@ -247,7 +247,7 @@ class OccupancyGrid:
     """Dense 3-D occupancy grid of the box ``[lower, upper]`` (Sec. II-D-1).
 
     Args:
-        lower, upper: ``(3,)`` corners (m). The grid has ``ceil((upper - lower) / resolution)`` cells per axis;
+        lower, upper: ``(3,)`` corners (m). The grid has ``ceil((upper - lower) / resolution - 1e-4)`` cells per axis;
             ``self.upper`` is moved up to ``lower + shape * resolution``.
         config: :class:`OccupancyConfig`.
         device, dtype: of ``log_odds`` and of every computation on the grid (``None``: the device of ``lower``
@@ -272,7 +272,8 @@ class OccupancyGrid:
         if bool((up <= lo).any()):
             raise ValueError(f"upper must exceed lower on every axis, got lower={lo.tolist()}, upper={up.tolist()}")
         res = self.config.resolution
-        shape = torch.ceil((up - lo) / res - 1e-9).clamp(min=1).long()
+        # 1e-4 of a cell of slack: float32 corners (0.1f = 0.1000000015) must not add a cell that a float64 box lacks
+        shape = torch.ceil((up - lo) / res - 1e-4).clamp(min=1).long()
         self.resolution = res
         self.shape = tuple(int(s) for s in shape.tolist())
         self.dims = shape

@@ -19,8 +19,10 @@ def covered_by_move(x: torch.Tensor, poses: torch.Tensor, dT_w: torch.Tensor, ob
     (before or after) can be covered: the others are skipped exactly.
     """
     poses = poses.reshape(-1, 4, 4)
-    before = torch.linalg.solve(dT_w, poses.reshape(-1, 4, 4)) if poses.numel() else poses  # dT_w^-1 T_i
     out = torch.zeros(len(x), dtype=torch.bool, device=x.device)
+    x = x.to(poses.device)  # computed where the particles live (features may sit on the CPU, particles on CUDA)
+    dT_w = dT_w.to(poses.device, poses.dtype)
+    before = torch.linalg.solve(dT_w, poses) if poses.numel() else poses  # dT_w^-1 T_i
     origins = torch.cat([poses[:, :3, 3], before[:, :3, 3]])
     idx = torch.nonzero(near_any(x, origins, obj.bounding_radius)).squeeze(1)
     with torch.no_grad():
@@ -28,7 +30,7 @@ def covered_by_move(x: torch.Tensor, poses: torch.Tensor, dT_w: torch.Tensor, ob
             sel = idx[s : s + chunk]
             v_after, _ = obj.sdf_world(poses, x[sel])  # (P, n)
             v_before, _ = obj.sdf_world(before, x[sel])
-            out[sel] = ((v_before > 0) & (v_after <= 0)).any(dim=0).to(x.device)
+            out[sel.to(out.device)] = ((v_before > 0) & (v_after <= 0)).any(dim=0).to(out.device)
     return out
 
 
