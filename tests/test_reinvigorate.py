@@ -232,3 +232,27 @@ def test_a_belief_at_the_truth_is_not_replaced_by_worse_proposals(box, truth, to
     after = b.discrepancy(touched)
     assert float(after.max()) < float(before.max()) + 3.0
     assert float(after.median()) < float(before.median()) + 1.0
+
+
+def test_every_step_move_brings_proposals_without_a_resample(box, truth, touched):
+    """reinvigorate_every_step: the move also at an update that re-weighs (max C^ <= l_r, Alg. 1 line 20), where
+    the default leaves the particles as they are. l_r is raised so that the wrong-face belief is not resampled."""
+    prior = lambda n, g: resting_face_prior(torch.tensor([*XY, 0.0]), box.mesh.vertices, n=n, generator=g)
+    base = dict(se2=False, reinvigorate=100, resample_threshold=1e9)
+    a = _wrong_face_belief(box, BeliefConfig(**base), 3)
+    a.proposal = prior
+    before = a.poses.clone()
+    assert a.update(touched, torch.Generator().manual_seed(3)) is False
+    assert torch.equal(a.poses, before) and a.last_reinvigorated == 0
+    b = _wrong_face_belief(box, BeliefConfig(**base, reinvigorate_every_step=True), 3)
+    b.proposal = prior
+    assert b.update(touched, torch.Generator().manual_seed(3)) is False
+    assert 0 < b.last_reinvigorated <= 20
+    faces = [_face_of(box, T) for T in b.poses]
+    true_face = _face_of(box, truth)
+    assert any(f in (true_face, true_face ^ 1) for f in faces)
+    w = b.weights
+    assert torch.isfinite(w).all() and abs(float(w.sum()) - 1) < 1e-6
+    assert float(w[[f != 5 for f in faces]].sum()) > 0.5  # the new fits carry the posterior's weight
+    with pytest.raises(ValueError, match="reinvigorate_every_step"):
+        BeliefConfig(reinvigorate_every_step=1)

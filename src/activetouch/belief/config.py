@@ -75,7 +75,9 @@ class BeliefConfig:
       (the task's prior sampler, set by the episode). The drill and box tasks turn it on (``TaskSpec.belief_defaults``).
       ``reinvigorate_normals`` (default True): each placement also turns the draw about the world z axis so the
       model's normal matches the observed patch's normal there (``reinvigorate.place_on_surface``); False places
-      with the drawn yaw (the first version of the proposals).
+      with the drawn yaw (the first version of the proposals). ``reinvigorate_every_step`` (default False): the
+      same move also at updates that do not resample (Alg. 1 line 20), so a proposal that fits the evidence as
+      well as the particles can enter after every particle already fits.
     """
 
     num_particles: int = 100
@@ -104,6 +106,7 @@ class BeliefConfig:
     reinvigorate: int = 0
     reinvigorate_share: float = 0.2
     reinvigorate_normals: bool = True
+    reinvigorate_every_step: bool = False
 
     def __post_init__(self):
         def _pos(name, allow_zero=False):
@@ -123,8 +126,9 @@ class BeliefConfig:
             _pos(name)
         for name in ("sigma_t", "sigma_R", "violation_tolerance", "active_weight"):
             _pos(name, allow_zero=True)
-        if not isinstance(self.reinvigorate_normals, bool):
-            raise ValueError(f"BeliefConfig.reinvigorate_normals must be true or false, got {self.reinvigorate_normals!r}")
+        for name in ("reinvigorate_normals", "reinvigorate_every_step"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"BeliefConfig.{name} must be true or false, got {getattr(self, name)!r}")
         if not (math.isfinite(float(self.reinvigorate_share)) and 0.0 < float(self.reinvigorate_share) <= 1.0):
             raise ValueError(f"BeliefConfig.reinvigorate_share must be in (0, 1], got {self.reinvigorate_share!r}")
         if self.resample_percentile is not None and not (0.0 < float(self.resample_percentile) <= 100.0):

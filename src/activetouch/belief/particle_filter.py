@@ -182,15 +182,23 @@ class ParticleBelief:
         weights carried from the previous step do not know the newest features, and since RUMI's weights
         are not recursive (they are recomputed from all of X_t) these are the current posterior weights.
         """
+        cfg = self.config
         with torch.no_grad():
             l = self.discrepancy(features)
         self.last_discrepancy = l
-        if self.resample_statistic(l) > self.config.resample_threshold:
-            w = boltzmann_weights(l, self.config.lam)
+        self.last_reinvigorated = 0
+        if self.resample_statistic(l) > cfg.resample_threshold:
+            w = boltzmann_weights(l, cfg.lam)
             self._resample(features, w, generator)
             resampled = True
         else:
-            self._weights = boltzmann_weights(l, self.config.lam)
+            if cfg.reinvigorate_every_step and cfg.reinvigorate > 0 and self.proposal is not None and len(features) > 0:
+                # the resample-move step also between resamples: once every particle fits the evidence (max C^ <
+                # l_r) no resample brings proposals, and a cluster on a wrong pose that fits converges (APC) while
+                # a placement at another pose fits as well (beyond the paper, BeliefConfig.reinvigorate_every_step)
+                self._poses = self._reinvigorate(features, self._poses.detach(), l, generator).detach()
+                l = self.last_discrepancy
+            self._weights = boltzmann_weights(l, cfg.lam)
             resampled = False
         self._check_invariants()
         return resampled
