@@ -257,6 +257,7 @@ class GraspEnv:
         self._qadr = m.jnt_qposadr[[jid(j) for j in ARM_JOINTS]].copy()
         self._vadr = m.jnt_dofadr[[jid(j) for j in ARM_JOINTS]].copy()
         self._pad_qadr = m.jnt_qposadr[[jid(j) for j in PAD_JOINTS]].copy()
+        self._pad_vadr = m.jnt_dofadr[[jid(j) for j in PAD_JOINTS]].copy()
         self._obj_qadr = int(m.jnt_qposadr[jid(OBJECT_JOINTS[0])])
         self._obj_vadr = int(m.jnt_dofadr[jid(OBJECT_JOINTS[0])])
         self._obj_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "object")
@@ -510,6 +511,50 @@ class GraspEnv:
             init, warm, c0 = self._rest_state(q0, pad), None, np.concatenate([q0, [pad, pad]])
         ctrl, seg_end, q_wp = self._ee_path_ctrl(q0, ee0, w, pad)
         return MotionPlan(ctrl, seg_end, init, warm, np.concatenate([q0[None], q_wp]), c0, guarded=True)
+
+    # ------------------------------------------------------------------ model hooks (protocol.GraspRobotEnv)
+    def robot_physics_state(self, q, dq, pads, pad_velocities, time: float = 0.0, warmstart=None
+                            ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The full physics state ``(nstate,)`` and solver warm start ``(nv,)`` (or None) of a robot measured at arm
+        joints ``q (7,)`` / velocities ``dq (7,)`` and pad slides ``pads (2,)`` / ``pad_velocities (2,)`` at
+        ``time`` (s), the box parked out of reach: what ``_robot_state()`` and ``_robot_warmstart()`` give for this
+        environment's own arm, built from another robot's measurements, so this environment can serve as the model
+        of a robot driven through ``activetouch.protocol`` (plans and rollouts start where that robot is).
+        ``warmstart``: ``(9,)`` the constraint solver's warm start of the arm's and pads' dofs (a simulated robot's;
+        None: the solver starts cold). Reads and changes nothing of this environment's own state."""
+        q = _check_array(q, (7,), "q", min_rows=0)
+        dq = _check_array(dq, (7,), "dq", min_rows=0)
+        pads = _check_array(pads, (2,), "pads", min_rows=0)
+        pad_v = _check_array(pad_velocities, (2,), "pad_velocities", min_rows=0)
+        if not math.isfinite(float(time)):
+            raise ValueError(f"time must be finite, got {time}")
+        d = mujoco.MjData(self.model)  # a fresh one: the state of nothing else leaks in
+        d.time = float(time)
+        d.qpos[self._qadr], d.qvel[self._vadr] = q, dq
+        d.qpos[self._pad_qadr], d.qvel[self._pad_vadr] = pads, pad_v
+        d.qpos[self._obj_qadr:self._obj_qadr + 4] = (*PARK_XY, self.z_rest, 0.0)
+        d.qvel[self._obj_vadr:self._obj_vadr + 4] = 0.0
+        warm = None
+        if warmstart is not None:
+            w = _check_array(warmstart, (9,), "warmstart", min_rows=0)
+            warm = np.zeros(self.model.nv)
+            warm[self._vadr], warm[self._pad_vadr] = w[:7], w[7:]
+        return self._get_state(d), warm
+
+    def plan_poke_at(self, waypoints, q0, ee0, init_state, warmstart, ctrl0) -> MotionPlan:
+        """``plan_poke(waypoints)`` from a given start instead of this environment's current state: arm joints
+        ``q0 (7,)``, measured ee ``ee0 (4,)``, physics state ``init_state`` and warm start ``warmstart``
+        (``robot_physics_state``) and the actuator targets in effect ``ctrl0 (9,)``: the same IK chain, so a model
+        plans exactly the motion a robot at that state executes for ``GuardedMoveCommand(waypoints)``."""
+        w = PokeAction(waypoints).waypoints
+        self._check_len(w)
+        q0 = _check_array(q0, (7,), "q0", min_rows=0)
+        ee0 = _check_array(ee0, (4,), "ee0", min_rows=0)
+        init = _check_array(init_state, (self._nstate,), "init_state", min_rows=0)
+        c0 = _check_array(ctrl0, (self.model.nu,), "ctrl0", min_rows=0)
+        ctrl, seg_end, q_wp = self._ee_path_ctrl(q0, ee0, w, self._pad_ctrl(self.spec.poke_opening))
+        return MotionPlan(ctrl, seg_end, init.copy(), None if warmstart is None else np.array(warmstart, float),
+                          np.concatenate([q0[None], q_wp]), c0.copy(), guarded=True)
 
     def plan_from_joints(self, q_plan, opening: float | None = None) -> MotionPlan:
         """A guarded ``MotionPlan`` through arm configurations ``q_plan (K+1, 7)`` (start at rest at
