@@ -1,8 +1,9 @@
 """The robot / sensor protocol (activetouch.protocol) and the simulator's implementations of it (sim.sim_robot,
-sim.sim_grasp_robot)."""
+sim.sim_grasp_robot, sim.sim_clutter_robot)."""
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -10,8 +11,8 @@ import torch
 
 from activetouch import sim
 from activetouch.protocol import (CAMERA, PRIOR, SURFACE, TOUCH, ArmState, EeDeltaCommand, GraspCommand,
-                                  GuardedMoveCommand, MotionLog, ProtocolError, RobotEnv, SensorFrame, check_frame,
-                                  check_robot)
+                                  GuardedMoveCommand, MotionLog, PickCommand, ProtocolError, PushCommand, RobotEnv,
+                                  SensorFrame, TouchCommand, ViewCommand, check_frame, check_robot)
 from activetouch.sim.sim_robot import SimRobot
 
 # toward the mug (mug-0: the mug at (0.5, 0), the gripper starts at (0.25, 0.22)): contact from the second action on
@@ -281,3 +282,284 @@ def test_the_grasp_wrapper_refuses_a_robot_without_arm_state():
         GraspRobotEnv(Rummager(), model).reset()
     with pytest.raises(ValueError, match="prior_means must be a finite"):
         GraspRobotEnv(Rummager(), model, prior_means=np.zeros((2, 2))).reset()
+
+
+# ---------------------------------------------------------------------------------------------------- clutter tasks
+# clutter-mustard seed 0: the mustard bottle at (0.328, 0.003) among a sugar box (1), a potted meat can (2, at
+# (0.504, 0.032)), a foam brick (3, at (0.429, -0.010)) and a bleach bottle (4)
+OVERHEAD = ([0.14, 0.0, 0.62], [0.33, 0.0, 0.10])  # the declutter phase's 70 deg view of the pile
+
+
+def _clutter_script():
+    """A view, a touch at the target's -x side, a push of the foam brick away along +y, a pick of the potted meat
+    can, a second view, the stop."""
+    from activetouch.sim.clutter_env import PickAction, PushAction, StopAction, TouchAction, ViewAction
+
+    return [ViewAction(*OVERHEAD), TouchAction((0.20, 0.003, 0.10), (1.0, 0.0, 0.0), 0.2),
+            PushAction(3, (0.429, -0.10, 0.025), (0.0, 1.0, 0.0), 0.12),
+            PickAction(2, (0.504, 0.032, 0.02), math.pi / 2, 0.10), ViewAction((0.33, -0.5, 0.35), (0.33, 0.0, 0.08)),
+            StopAction("scripted")]
+
+
+def test_the_simulated_clutter_robot_passes_the_robot_contract():
+    from activetouch.protocol import PushCommand, TouchCommand, ViewCommand
+    from activetouch.sim.clutter_tasks import make_clutter_env
+    from activetouch.sim.sim_clutter_robot import SimClutterRobot
+
+    robot = SimClutterRobot(make_clutter_env("clutter-mustard"))
+    frames = check_robot(robot, command=lambda f: ViewCommand(*OVERHEAD))  # a view moves the camera only
+    reset, view = frames[0], frames[2]
+    assert reset.view is None and len(reset.points) == 0 and reset.object_pose is not None
+    assert reset.joint_positions.shape == (7,) and reset.contact_label is None
+    v = view.view
+    assert v.shape == (72, 96) and v.points.shape == (72, 96, 3) and v.target_label == 0
+    assert int((v.labels == 0).sum()) > 30 and int((v.labels > 0).sum()) > 30  # the target and the clutter
+    np.testing.assert_array_equal(view.points, v.target_points)  # the target's returns, from the camera
+    assert (view.source == CAMERA).all() and (view.semantics == SURFACE).all()
+    np.testing.assert_allclose(v.camera_pose, ViewCommand(*OVERHEAD).camera_pose, atol=1e-12)
+    assert frames[3].stamp > view.stamp  # a view takes no physics time; the robot's clock counts its exposure
+    with pytest.raises(ProtocolError, match="executes ViewCommand, TouchCommand, PushCommand and PickCommand"):
+        robot.act(EeDeltaCommand(np.zeros(3)))
+    with pytest.raises(ProtocolError, match=r"PushCommand.label must name a clutter object 1..4 \(0 is the target"):
+        robot.act(PushCommand(0, [0.3, 0.0, 0.05], [1.0, 0.0, 0.0]))
+    with pytest.raises(ProtocolError, match="max_length must be in"):  # beyond the simulated arm's reach
+        robot.act(TouchCommand([0.2, 0.0, 0.1], [1.0, 0.0, 0.0], max_length=0.6))
+    robot.close()
+
+
+def test_the_clutter_loop_sees_the_same_observations_through_the_protocol():
+    """ClutterRobotEnv(SimClutterRobot(env)) gives the loop exactly ClutterEnv's observations: views (target
+    points, segmentation, organised cloud, the camera's rays), a touch, a push, a pick and the stop."""
+    from activetouch.protocol import ClutterRobotEnv
+    from activetouch.sim.clutter_env import ClutterObservation
+    from activetouch.sim.clutter_tasks import make_clutter_env
+    from activetouch.sim.sim_clutter_robot import sim_clutter_robot_env
+
+    direct, proto = make_clutter_env("clutter-mustard"), sim_clutter_robot_env("clutter-mustard")
+    assert isinstance(proto, ClutterRobotEnv)
+    (oa, ia), (ob, ib) = direct.reset(seed=0), proto.reset(seed=0)
+    pairs = [(oa, ia, ob, ib)]
+    torch.testing.assert_close(ib["prior_pose"], ia["true_pose"], rtol=0, atol=0)  # the simulated detection
+    for action in _clutter_script():
+        np.testing.assert_array_equal(direct.ee_state(), proto.ee_state())
+        a, b = direct.step(action), proto.step(action)
+        assert a[1:4] == b[1:4]
+        pairs.append((a[0], a[4], b[0], b[4]))
+    for oa, ia, ob, ib in pairs:
+        for f in dataclasses.fields(ClutterObservation):
+            x, y = getattr(oa, f.name), getattr(ob, f.name)
+            if f.name == "camera":
+                assert (x is None) == (y is None)
+                if x is not None:
+                    assert x.pos == y.pos and x.max_depth == y.max_depth
+                    np.testing.assert_array_equal(x.ray_directions(), y.ray_directions())
+                    np.testing.assert_array_equal(x.intrinsics(), y.intrinsics())
+                continue
+            assert (x is None) == (y is None), f.name
+            if isinstance(x, np.ndarray):
+                assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=True), f.name
+            else:
+                assert x == y, f.name
+        assert torch.equal(ia["true_pose"], ib["true_pose"])
+        for k in ("action", "action_success", "num_actions", "stop_reason"):
+            assert ia.get(k) == ib.get(k), k
+        assert "object_poses" not in ib  # the clutter's poses stay in the simulator
+    kinds = [p[0].kind for p in pairs]
+    assert kinds == ["reset", "view", "touch", "push", "pick", "view", "stop"]
+    assert pairs[2][0].success and len(pairs[2][0].points) >= 1, "the touch was meant to reach the target"
+    assert pairs[3][0].success and pairs[4][0].success, "the push and the pick were meant to succeed"
+    with pytest.raises(RuntimeError, match="ended"):
+        proto.step(_clutter_script()[0])
+    direct.close()
+    proto.close()
+
+
+def test_a_clutter_method_runs_through_the_protocol_with_the_same_numbers(tmp_path, monkeypatch):
+    """A clutter task whose environment is ClutterRobotEnv(SimClutterRobot(...)), registered as a user would register
+    a real arm (its prior around the robot's detection), runs the paper's method (views, a declutter push, views, a
+    touch, the stop) through the one episode loop and gives the same steps and summary as the simulated task itself,
+    while the estimator and the planner see no ground truth: ``info`` reaches them without ``true_pose`` and the
+    wrapper's truth accessors raise (only the loop's metrics read ``info["true_pose"]``)."""
+    import dataclasses as dc
+
+    from activetouch import registry
+    from activetouch.experiments.estimators import TiqfEstimator
+    from activetouch.experiments.records import read_steps
+    from activetouch.experiments.runner import EpisodeConfig, run_episode
+    from activetouch.methods import QUICK_CLUTTER
+    from activetouch.protocol import ClutterRobotEnv, detection_prior
+    from activetouch.sim.sim_clutter_robot import sim_clutter_robot_env
+
+    entry = dc.replace(registry.get_task("clutter-mustard"), name="clutter-mustard-protocol", prior=detection_prior,
+                       make_env=lambda seed=0, **kw: sim_clutter_robot_env("clutter-mustard", seed=seed, **kw))
+    monkeypatch.setitem(registry._TASKS, "clutter-mustard-protocol", entry)
+    cfg = dict(method="tiqf-visuo-tactile", seed=0, planner=dict(QUICK_CLUTTER), figures=False, progress=False)
+    sa = run_episode(EpisodeConfig(task="clutter-mustard", **cfg), tmp_path / "direct")
+
+    blind = lambda info: {k: v for k, v in info.items() if k != "true_pose"}  # noqa: E731
+    init, observe = TiqfEstimator.initialise, TiqfEstimator.observe
+    monkeypatch.setattr(TiqfEstimator, "initialise", lambda self, task, obs, info, gen: init(self, task, obs,
+                                                                                            blind(info), gen))
+    monkeypatch.setattr(TiqfEstimator, "observe", lambda self, obs, info, ee, gen: observe(self, obs, blind(info),
+                                                                                         ee, gen))
+
+    def no_truth(self):
+        raise AssertionError("an estimator or planner read the ground truth")
+
+    monkeypatch.setattr(ClutterRobotEnv, "true_pose", no_truth)
+    monkeypatch.setattr(ClutterRobotEnv, "object_poses", no_truth)
+    sb = run_episode(EpisodeConfig(task="clutter-mustard-protocol", **cfg), tmp_path / "protocol")
+
+    a, b = read_steps(tmp_path / "direct" / "steps.csv"), read_steps(tmp_path / "protocol" / "steps.csv")
+    acts = [r["action"] for r in a]
+    assert acts[0] == "reset" and acts[-1] == "stop" and "view" in acts and "touch" in acts
+    assert {"push", "pick"} & set(acts), "the episode was meant to declutter"
+    same = lambda r: {k: v for k, v in r.items() if not k.endswith("_s")}  # noqa: E731 (timings differ)
+    assert len(a) == len(b) and [same(r) for r in a] == [same(r) for r in b]
+    skip = {"task", "config", "platform", "wall_s", "median_plan_s"}
+    assert {k: v for k, v in sa.items() if k not in skip} == {k: v for k, v in sb.items() if k not in skip}
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda: ViewCommand([0.1, 0.0], OVERHEAD[1]), r"ViewCommand.position must have shape \(3,\)"),
+    (lambda: ViewCommand([0.1, np.nan, 0.5], OVERHEAD[1]), "ViewCommand.position must be finite"),
+    (lambda: ViewCommand(OVERHEAD[1], OVERHEAD[1]), "ViewCommand.position and look_at coincide"),
+    (lambda: ViewCommand([0.3, 0.0, 0.6], [0.3, 0.0, 0.0]), "ViewCommand looks straight up or down"),
+    (lambda: TouchCommand([0.2, 0.0, 0.1], [1.0, 1.0, 0.0]), "TouchCommand.direction must be a unit vector"),
+    (lambda: TouchCommand("here", [1.0, 0.0, 0.0]), "TouchCommand.start must be a numeric array"),
+    (lambda: TouchCommand([0.2, 0.0, 0.1], [1.0, 0.0, 0.0], 0.0), "TouchCommand.max_length must be a finite"),
+    (lambda: PushCommand(-1, [0.4, 0.0, 0.03], [1.0, 0.0, 0.0]), "PushCommand.label must be an object label"),
+    (lambda: PushCommand(True, [0.4, 0.0, 0.03], [1.0, 0.0, 0.0]), "PushCommand.label must be an object label"),
+    (lambda: PushCommand(1, [0.4, 0.0, 0.03], [0.0, 0.0, 2.0]), "PushCommand.direction must be a unit vector"),
+    (lambda: PushCommand(1, [0.4, 0.0, 0.03], [1.0, 0.0, 0.0], np.inf), "PushCommand.length must be a finite"),
+    (lambda: PickCommand(1.5, [0.5, 0.0, 0.02], 0.0, 0.06), "PickCommand.label must be an object label"),
+    (lambda: PickCommand(2, [0.5, 0.0], 0.0, 0.06), r"PickCommand.position must have shape \(3,\)"),
+    (lambda: PickCommand(2, [0.5, 0.0, 0.02], np.nan, 0.06), "PickCommand.closing_angle must be a finite angle"),
+    (lambda: PickCommand(2, [0.5, 0.0, 0.02], 0.0, -0.1), "PickCommand.width must be a finite number > 0"),
+])
+def test_bad_clutter_commands_are_named(make, message):
+    with pytest.raises(ProtocolError, match=message):
+        make()
+    cmd = PushCommand(np.int64(2), (0.4, 0.0, 0.03), (1.0, 0.0, 0.0), 1)
+    assert type(cmd.label) is int and cmd.length == 1.0 and not cmd.start.flags.writeable
+    T = ViewCommand(*OVERHEAD).camera_pose  # OpenCV axes: z (forward) toward the look-at point
+    fwd = np.subtract(OVERHEAD[1], OVERHEAD[0])
+    np.testing.assert_allclose(T[:3, 2], fwd / np.linalg.norm(fwd), atol=1e-12)
+    assert T[2, 0] == 0.0  # the image's x axis horizontal
+
+
+K_TEST = np.array([[80.0, 0.0, 2.0], [0.0, 80.0, 1.5], [0.0, 0.0, 1.0]])
+R_DOWN = np.diag([1.0, -1.0, -1.0])  # a camera looking straight down (a real mount may; ViewCommand cannot)
+
+
+def _view(**changes):
+    from activetouch.protocol import DepthView
+
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_DOWN, (0.33, 0.0, 0.6)
+    pts = np.full((4, 5, 3), 0.1)
+    pts[0, 0] = np.nan  # no return
+    labels = np.zeros((4, 5), np.int64)
+    labels[0] = -1
+    labels[3, 4] = 2
+    base = DepthView(camera_pose=T, intrinsics=K_TEST, points=pts, labels=labels, target_label=0, max_depth=1.5)
+    return dataclasses.replace(base, **changes)
+
+
+@pytest.mark.parametrize("view, frame, message", [
+    ({"camera_pose": 2 * np.eye(4)}, {}, "view.camera_pose is not a rigid transform"),
+    ({"intrinsics": K_TEST + np.array([[0, 1.0, 0], [0, 0, 0], [0, 0, 0]])}, {}, r"view.intrinsics must be a finite"),
+    ({"intrinsics": np.eye(2)}, {}, "view.intrinsics must be a finite"),
+    ({"labels": np.zeros((4, 5))}, {}, r"view.labels must be a non-empty \(H, W\) int array"),
+    ({"labels": np.full((4, 5), -2)}, {}, "view.labels must be object labels >= 0 or -1"),
+    ({"points": np.zeros((4, 4, 3))}, {}, r"view.points must have shape \(4, 5, 3\)"),
+    ({"points": np.full((4, 5, 3), np.inf)}, {}, "view.points must be float, finite or NaN"),
+    ({"target_label": -1}, {}, "view.target_label must be an object label"),
+    ({"max_depth": 0.0}, {}, "view.max_depth must be a finite range > 0"),
+    ({}, {"contact_label": -2}, "contact_label must be an object label >= 0, -1"),
+    ({}, {"contact_label": True}, "contact_label must be an object label >= 0, -1"),
+    ({}, {"push_success": "yes"}, "push_success must be a bool"),
+    ({}, {"view": "image"}, "view must be a DepthView"),
+])
+def test_bad_clutter_frames_are_named(view, frame, message):
+    check_frame(_frame(view=_view(), contact_label=-1, push_success=False))  # the base frame is valid
+    with pytest.raises(ProtocolError, match=message):
+        check_frame(_frame(**{"view": _view(**view), **frame}))
+
+
+class _ScriptedClutterRobot:
+    """Answers every command with the frame fields ``answers[type(command)]`` (a robot whose segmenter calls the
+    target 3) and keeps the commands."""
+
+    def __init__(self, answers):
+        self.answers, self.commands = answers, []
+
+    def reset(self):
+        return _frame(points=np.zeros((0, 3)), semantics=np.zeros(0, int), source=np.zeros(0, int))
+
+    def observe(self):
+        return self.reset()
+
+    def act(self, command):
+        self.commands.append(command)
+        return _frame(**self.answers.get(type(command), {}))
+
+
+def test_the_clutter_wrapper_numbers_the_target_0_for_the_planners():
+    from activetouch.protocol import ClutterRobotEnv, PosedCamera
+    from activetouch.sim.camera import PinholeCamera
+    from activetouch.sim.clutter_env import PushAction, StopAction, TouchAction, ViewAction
+    from activetouch.sim.clutter_tasks import get_clutter_spec
+
+    v = _view(labels=np.array([[3, 0, -1, 1, 3], [3, 3, 2, 2, -1], [0, 0, 0, 3, 3], [-1, -1, -1, -1, 3]]),
+              target_label=3)
+    n = len(v.target_points)  # the target's 7 pixels but (0, 0), which returned nothing
+    answers = {ViewCommand: dict(view=v, points=v.target_points, semantics=np.zeros(n, int),
+                                 source=np.full(n, CAMERA)),
+               PushCommand: dict(points=np.zeros((0, 3)), semantics=np.zeros(0, int), source=np.zeros(0, int),
+                                 contact_label=0, push_success=True),
+               TouchCommand: dict(contact_label=3)}  # _frame's one TOUCH point on the target, in_contact
+    robot = _ScriptedClutterRobot(answers)
+    env = ClutterRobotEnv(robot, get_clutter_spec("clutter-mustard"), prior_pose=np.eye(4))
+    obs, info = env.reset()
+    assert "true_pose" not in info and torch.equal(info["prior_pose"], torch.eye(4))
+    obs = env.step(ViewAction(*OVERHEAD))[0]
+    assert obs.seg.tolist() == [[0, 3, -1, 1, 0], [0, 0, 2, 2, -1], [3, 3, 3, 0, 0], [-1, -1, -1, -1, 0]]
+    assert obs.success and n == int((v.labels == 3).sum()) - 1 and len(obs.points) == n
+    assert isinstance(obs.camera, PosedCamera) and isinstance(obs.camera, PinholeCamera)
+    np.testing.assert_allclose(obs.camera.ray_directions()[7], [0.0, 0.0, -1.0], atol=0.02)  # looking down
+    obs = env.step(PushAction(3, (0.4, 0.0, 0.03), (1.0, 0.0, 0.0), 0.1))[0]
+    assert robot.commands[-1].label == 0  # the planners' 3 is the robot's 0
+    assert obs.kind == "push" and obs.success and obs.contact_label == 3
+    obs = env.step(TouchAction((0.2, 0.0, 0.1), (1.0, 0.0, 0.0)))[0]
+    assert obs.success and obs.contact_label == 0 and obs.points.shape == (1, 3)
+    obs, _, terminated, _, info = env.step(StopAction("done"))
+    assert terminated and obs.kind == "stop" and info["stop_reason"] == "done" and len(robot.commands) == 3
+    with pytest.raises(RuntimeError, match="no ground truth"):
+        env.object_poses()
+
+
+def test_the_clutter_wrapper_refuses_frames_without_their_answers():
+    from activetouch.protocol import ClutterRobotEnv, detection_prior
+    from activetouch.sim.clutter_env import PickAction, TouchAction, ViewAction
+    from activetouch.sim.clutter_tasks import get_clutter_spec
+
+    spec = get_clutter_spec("clutter-mustard")
+    env = ClutterRobotEnv(_ScriptedClutterRobot({}), spec)
+    env.reset()
+    with pytest.raises(ProtocolError, match="the frame of a ViewCommand must carry its DepthView"):
+        env.step(ViewAction(*OVERHEAD))
+    with pytest.raises(ProtocolError, match="the frame of a TouchCommand must report contact_label"):
+        env.step(TouchAction((0.2, 0.0, 0.1), (1.0, 0.0, 0.0)))
+    picked = ClutterRobotEnv(_ScriptedClutterRobot({PickCommand: dict(contact_label=-1)}), spec)
+    picked.reset()
+    with pytest.raises(ProtocolError, match="the frame of a PickCommand must report grasp_success"):
+        picked.step(PickAction(1, (0.5, 0.0, 0.02), 0.0, 0.06))
+    with pytest.raises(ProtocolError, match="lacks reset"):
+        ClutterRobotEnv(object(), spec)
+    with pytest.raises(ValueError, match=r"detection_prior needs info\['prior_pose'\]"):
+        detection_prior(env, 1, torch.Generator(), info={})
+    with pytest.raises(ProtocolError, match="prior_pose is not a rigid transform"):
+        ClutterRobotEnv(_ScriptedClutterRobot({}), spec, prior_pose=lambda seed: np.zeros((4, 4))).reset()
+    with pytest.raises(ProtocolError, match="the frame of a ViewCommand must carry its DepthView"):
+        check_robot(_ScriptedClutterRobot({}), command=lambda f: ViewCommand(*OVERHEAD))
