@@ -152,6 +152,12 @@ def test_box_episode_run_before_the_task_defaults_changed_is_not_resumed(capsys,
     assert "different belief settings" in _err(capsys)
     _fake_episode(tmp_path / "u", "box-0", "rumi", 1, belief={"reinvigorate": 100})  # the same, said explicitly
     assert main(["table", str(tmp_path / "u")]) == 0
+    # another method on the same task records its own belief's defaults (none): one table holds both
+    for method, td in (("rumi", {"reinvigorate": 100}), ("tiqf-slide", {})):
+        d = _fake_episode(tmp_path / "v", "box-0", method, 0)
+        s = __import__("json").loads((d / "summary.json").read_text())
+        write_json_atomic(d / "summary.json", {**s, "task_belief_defaults": td})
+    assert main(["table", str(tmp_path / "v")]) == 0
 
 
 def test_table_refuses_mixed_settings_and_repeated_seeds(capsys, tmp_path):

@@ -142,7 +142,7 @@ def check_same_settings(summaries: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The common settings of ``summaries``; ``ValueError`` naming the first difference, or a (task, method, seed)
     that occurs twice (a table that counts one seed twice, or mixes settings, is silently wrong)."""
     seen: dict[tuple, str] = {}
-    task_defaults: dict[str, tuple] = {}
+    task_defaults: dict[tuple, tuple] = {}
     first = None
     for s in summaries:
         cfg = s.get("config")
@@ -154,11 +154,13 @@ def check_same_settings(summaries: Sequence[dict[str, Any]]) -> dict[str, Any]:
             raise ValueError(f"{key[1]} on {key[0]} seed {key[2]} occurs twice ({seen[key]} and {where}): "
                              "aggregate one sweep folder at a time")
         seen[key] = where
-        td = effective_belief(s)
-        if key[0] in task_defaults and task_defaults[key[0]][0] != td:
-            raise ValueError(f"episodes of {key[0]} run with different belief settings (the task's defaults "
-                             f"under --belief): {task_defaults[key[0]][1]} ({task_defaults[key[0]][0]}) vs {where} ({td})")
-        task_defaults.setdefault(key[0], (td, where))
+        # per (task, method): a task's belief defaults apply to the belief they are for (box-* gives RUMI's
+        # particles `reinvigorate`, not TIQF), so two methods on one task may rightly differ here
+        td, tm = effective_belief(s), key[:2]
+        if tm in task_defaults and task_defaults[tm][0] != td:
+            raise ValueError(f"episodes of {key[1]} on {key[0]} run with different belief settings (the task's "
+                             f"defaults under --belief): {task_defaults[tm][1]} ({task_defaults[tm][0]}) vs {where} ({td})")
+        task_defaults.setdefault(tm, (td, where))
         if first is None:
             first = s
         else:
