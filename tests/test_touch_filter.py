@@ -8,6 +8,7 @@ in for the robot's collision geometry.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -416,3 +417,38 @@ def test_history_check_does_not_dilute_a_belief_that_explains_the_contact(box):
         assert out["resampled"] == "contact"
         replaced[check] = out["n_replaced"]
     assert replaced[False] >= 30 and replaced[True] <= 10, replaced  # 50 and 0 here
+
+
+def test_history_motion_judges_a_pushed_box_where_it_was(box):
+    """``history_motion``: a contact on the +x face, then a poke that pushes every particle 3 cm along -x. Held
+    still (the default check), the present states lie 3 cm from the old contact; on their own paths they touched
+    it. Resampled copies (roughened) and contact candidates inherit paths that end at their present state and
+    keep their parent's displacement."""
+    cfg = TouchFilterConfig(num_particles=20, resample=False, history_check=True, history_motion=True)
+    st = torch.cat([torch.zeros(10, 3), torch.tensor([[0.0, 0.3, 0.0]]).repeat(10, 1)]).double()
+    b = TouchBelief.from_prior(box, st, cfg)
+    b.update(torch.ones(1, dtype=torch.bool), touching_finger()[None])  # the box at rest, touched
+    traj = st[:, None, :].repeat(1, 3, 1)
+    traj[..., 0] += torch.tensor([-0.01, -0.02, -0.03], dtype=traj.dtype)  # the poke pushes it 3 cm along -x
+    b.update(torch.zeros(3, dtype=torch.bool), finger([0.5, 0.5, 0.1])[None].repeat(3, 1, 1), traj)
+    assert [tuple(p.shape) for p in b.history_paths] == [(20, 1, 3), (20, 3, 3)]
+    own = b.history_log_likelihood(b.states, b.history_paths)
+    still = b.history_log_likelihood(b.states)
+    assert bool((own[:10] > still[:10] + 1.0).all()), (own, still)  # log(0.5 / 0.1) = 1.6 at the contact
+    assert torch.allclose(own[10:], still[10:], atol=1e-6)  # the far group never came near the finger
+    plain = TouchBelief.from_prior(box, st, replace(cfg, history_motion=False))
+    plain.update(torch.ones(1, dtype=torch.bool), touching_finger()[None])
+    plain.update(torch.zeros(3, dtype=torch.bool), finger([0.5, 0.5, 0.1])[None].repeat(3, 1, 1), traj)
+    assert plain.history_paths == [] and torch.allclose(plain.history_log_likelihood(plain.states), still)
+
+    b.resample_systematic(torch.Generator().manual_seed(0))  # mostly copies of the touched group, roughened
+    p0, p1 = b.history_paths
+    assert torch.allclose(p1[:, -1], b.states, atol=1e-9)  # every path ends where its particle is now
+    assert torch.allclose(p0[:, 0] - b.states, torch.tensor([0.03, 0.0, 0.0], dtype=p0.dtype).expand(20, 3),
+                          atol=1e-9)  # and keeps the parent's 3 cm push
+    # a contact 15 cm from every particle: contact-aware resampling brings in candidates
+    out = b.update(torch.ones(1, dtype=torch.bool), touching_finger()[None] + torch.tensor([0.0, -0.15, 0.0]),
+                   generator=torch.Generator().manual_seed(1), resample=True)
+    assert out["resampled"] == "contact" and out["n_replaced"] > 0, out
+    assert all(torch.allclose(p[:, -1], b.states, atol=1e-9) for p in b.history_paths[-1:])  # theirs end there too
+    assert len(b.history_paths) == 3 and all(bool(torch.isfinite(p).all()) for p in b.history_paths)

@@ -105,6 +105,12 @@ class TouchFilterConfig:
       the check, 9/12 against the replaced particle only, 10/12 with the median too; on seeds 0-9 15/30 with 12
       waypoints per poke, 20/30 with 36 (the planner's default since; README Table I).
     * ``history_segments`` = 15: the most recent segments kept for that check (the paper's 15 pokes).
+    * ``history_motion`` = False: the check holds every state still over the kept segments, so a box the pokes
+      pushed by ``delta`` makes old contacts look ``delta`` away for every state. True (beyond the paper): each
+      particle is scored on its own path over the kept segments (its physics rollouts; resampled copies inherit
+      their parent's path shifted by their jitter; a contact candidate drawn from a particle inherits that
+      particle's path, one drawn around the robot the belief's weighted mean path), so a pushed box is judged
+      where it was at each old contact.
     """
 
     num_particles: int = 100
@@ -134,12 +140,15 @@ class TouchFilterConfig:
     mode_sigma_yaw: float = 0.1
     history_check: bool = False
     history_segments: int = 15
+    history_motion: bool = False
 
     def __post_init__(self):
         if not isinstance(self.contact, ContactModelConfig):
             raise ValueError(f"contact must be a ContactModelConfig, got {type(self.contact).__name__}")
         if not isinstance(self.history_check, bool):
             raise ValueError(f"TouchFilterConfig.history_check must be true or false, got {self.history_check!r}")
+        if not isinstance(self.history_motion, bool):
+            raise ValueError(f"TouchFilterConfig.history_motion must be true or false, got {self.history_motion!r}")
         for name in ("num_particles", "contact_samples", "projection_iterations", "prior_components",
                      "history_segments"):
             v = getattr(self, name)
@@ -217,6 +226,9 @@ class TouchBelief:
             lw = torch.log(w / w.sum())
         self._log_w = lw
         self._history: list[tuple[torch.Tensor, torch.Tensor]] = []  # (z (K,), robot points (K, M, 3)) per segment
+        # with config.history_motion: each particle's states over each kept segment, (P, K, 3) per segment
+        self._paths: list[torch.Tensor] = []
+        self._donors: torch.Tensor | None = None  # contact_candidates' source particle per candidate (-1: none)
         self._check_invariants()
 
     @classmethod
@@ -244,6 +256,12 @@ class TouchBelief:
     def poses(self) -> torch.Tensor:
         """``(P, 4, 4)`` object -> world poses of the particles (origin at ``config.table_height``)."""
         return se2_to_pose(self._states, self.config.table_height)
+
+    @property
+    def history_paths(self) -> list[torch.Tensor]:
+        """Each particle's states over each kept segment, ``(P, K, 3)`` per segment, oldest first (kept with
+        ``config.history_check`` and ``config.history_motion``; empty otherwise)."""
+        return [p.clone() for p in self._paths]
 
     @property
     def num_particles(self) -> int:
@@ -336,6 +354,10 @@ class TouchBelief:
         if cfg.history_check:
             self._history.append((zt.to(d.device), rp))
             del self._history[:-cfg.history_segments]
+            if cfg.history_motion:  # each particle's own states over this segment (held still: the same state)
+                path = traj if traj.ndim == 3 else traj[:, None, :].expand(P, K, 3)
+                self._paths.append(path.clone())
+                del self._paths[:-cfg.history_segments]
         ess = self.ess()
         out = dict(ess=ess, ess_ratio=ess / P, resampled=None, n_replaced=0,
                    replaced=torch.zeros(0, dtype=torch.long, device=self._states.device), fallback=fallback,
@@ -366,8 +388,9 @@ class TouchBelief:
         out[:, 2] = wrap_angle(out[:, 2])
         return out
 
-    def _draw(self, n: int, generator) -> torch.Tensor:
-        """``n`` states by systematic importance resampling, duplicates (all copies but the first) roughened."""
+    def _draw(self, n: int, generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """``n`` states by systematic importance resampling, duplicates (all copies but the first) roughened;
+        returns them with their parents' indices ``(n,)``."""
         cfg = self.config
         idx = systematic_resample(self.weights, n, generator)  # sorted
         s = self._states.index_select(0, idx)
@@ -376,12 +399,33 @@ class TouchBelief:
             dup[1:] = idx[1:] == idx[:-1]
             if bool(dup.any()):
                 s[dup] = self._jitter(s[dup], cfg.roughening_pos, cfg.roughening_yaw, generator)
-        return s
+        return s, idx
+
+    def _inherited_paths(self, states: torch.Tensor, donors: torch.Tensor) -> list[torch.Tensor]:
+        """Kept-segment paths ``(n, K, 3)`` per segment for new states ``(n, 3)``: the path of particle
+        ``donors[i]`` shifted by ``states[i] - states[donors[i]]`` (yaw wrapped); ``donors[i] = -1``: the belief's
+        weighted mean offset path (a state with no parent moved as the belief expects). The shift is a translation
+        and a yaw offset of the whole path, an approximation for the small jitters of resampling and proposals."""
+        out = []
+        w = self.weights
+        for path in self._paths:
+            off = path - self._states[:, None, :]  # (P, K, 3) each particle's past relative to its present
+            off[..., 2] = wrap_angle(off[..., 2])
+            mean = (w[:, None, None] * off).sum(0)  # (K, 3)
+            d = donors.clamp_min(0)
+            o = torch.where((donors >= 0)[:, None, None], off.index_select(0, d), mean[None])
+            p = states[:, None, :] + o
+            p[..., 2] = wrap_angle(p[..., 2])
+            out.append(p)
+        return out
 
     def resample_systematic(self, generator: torch.Generator | None = None) -> None:
         """Standard importance resampling (App. B, no-contact case): systematic resampling of all ``P``
         particles by weight, duplicates roughened (``config.roughening_*``), then uniform weights."""
-        self._states = self._draw(self.num_particles, generator)
+        new, idx = self._draw(self.num_particles, generator)
+        if self._paths:
+            self._paths = self._inherited_paths(new, idx)
+        self._states = new
         self._log_w = torch.full_like(self._log_w, -math.log(self.num_particles))
         self._check_invariants()
 
@@ -415,6 +459,7 @@ class TouchBelief:
                               generator=generator).to(self._states.device)
         s = self._jitter(self._states.index_select(0, j), cfg.candidate_sigma_pos, cfg.candidate_sigma_yaw,
                          generator)
+        donors = j.clone()
         # objects without bounds (e.g. the ablation's analytic planar box) draw every candidate from the belief
         n_local = int(round(cfg.contact_local_share * n)) if hasattr(self.obj, "bounds") else 0
         if n_local > 0:
@@ -430,6 +475,8 @@ class TouchBelief:
             loc = torch.stack([c[0] + rad * torch.cos(ang), c[1] + rad * torch.sin(ang),
                                (2 * u[:, 2] - 1) * math.pi], dim=1)
             s = torch.cat([s[: n - n_local], loc])
+            donors[n - n_local:] = -1
+        self._donors = donors
         ar = torch.arange(n, device=s.device)
         for _ in range(cfg.projection_iterations):
             poses = se2_to_pose(s, cfg.table_height)
@@ -446,17 +493,19 @@ class TouchBelief:
         return s, sd
 
     @torch.no_grad()
-    def history_log_likelihood(self, states: torch.Tensor) -> torch.Tensor:
+    def history_log_likelihood(self, states: torch.Tensor, paths: list[torch.Tensor] | None = None) -> torch.Tensor:
         """``(n,)`` log-likelihood of the kept observation segments (``config.history_segments``, newest
         included) for states ``(n, 3)`` held still over all of them: ``sum_s sum_k log P(z_{s,k} | d(x, robot_{s,k}))``
         of Eq. 10. The particles' own history lives in their weights, but resampling resets those; this scores
         candidates and the particles they would replace on equal terms. Approximation (stated): a state is held
         where it is now over the past segments, so a box the pokes pushed by ``delta`` makes old contacts look
-        ``delta`` away for every state alike (the comparison stays fair; its absolute value drops)."""
+        ``delta`` away for every state alike (the comparison stays fair; its absolute value drops). ``paths``: one
+        ``(n, K, 3)`` per kept segment, the states' own past over it (``config.history_motion``) instead."""
         cfg = self.config
         total = torch.zeros(states.shape[0], dtype=self._states.dtype, device=self._states.device)
-        for z, rp in self._history:
-            d = robot_object_distance(self.obj, states.to(self._states), rp, cfg.table_height)  # (n, K)
+        for s, (z, rp) in enumerate(self._history):
+            x = states if paths is None else paths[s]
+            d = robot_object_distance(self.obj, x.to(self._states), rp, cfg.table_height)  # (n, K)
             total += contact_log_likelihood(z, d.T, cfg.contact).sum(0)
         return total
 
@@ -493,9 +542,10 @@ class TouchBelief:
             # the whole kept history decides, not the current contact alone (TouchFilterConfig.history_check).
             # (Candidates and particles are scored in two calls: one call on both, concatenated, gave other floats
             # here, which changed a grasp-box-1 episode; the two calls reproduce the measured Table I.)
-            ll = self.history_log_likelihood(cand)
+            cand_paths = self._inherited_paths(cand, self._donors) if self._paths else None
+            ll = self.history_log_likelihood(cand, cand_paths)
             score = torch.where(shallow, ll, torch.full_like(ll, -math.inf))
-            own = self.history_log_likelihood(self._states)
+            own = self.history_log_likelihood(self._states, self._paths or None)
             # ... and must be at least as plausible as a typical particle of the belief (its weighted median):
             # beating a ruled-out low-weight particle alone would fill up to half the belief with poor candidates
             # at the uniform weights that follow
@@ -523,7 +573,17 @@ class TouchBelief:
         keep[slots] = False
         new = torch.empty_like(self._states)
         if P - R > 0:
-            new[keep] = self._draw(P - R, generator)
+            drawn, idx = self._draw(P - R, generator)
+            new[keep] = drawn
+        if self._paths:  # the drawn particles inherit their parents' paths, the candidates their donors'
+            paths = [torch.empty_like(p) for p in self._paths]
+            if P - R > 0:
+                for p, q in zip(paths, self._inherited_paths(drawn, idx)):
+                    p[keep] = q
+            if R:
+                for p, q in zip(paths, self._inherited_paths(cand[order], self._donors[order])):
+                    p[slots] = q
+            self._paths = paths
         new[slots] = cand[order]
         self._states = new
         self._log_w = torch.full_like(self._log_w, -math.log(P))
