@@ -110,7 +110,8 @@ class TouchFilterConfig:
       particle is scored on its own path over the kept segments (its physics rollouts; resampled copies inherit
       their parent's path shifted by their jitter; a contact candidate drawn from a particle inherits that
       particle's path, one drawn around the robot the belief's weighted mean path), so a pushed box is judged
-      where it was at each old contact.
+      where it was at each old contact. Measured (touch-ig, grasp-box-0/1/2, seeds 0-9, static prediction):
+      17/30 grasps against 20/30 held still, within the intervals: off by default.
     """
 
     num_particles: int = 100
