@@ -182,3 +182,18 @@ def test_table_header_names_the_code_that_made_the_episodes():
     line = _code_line([a, a, b, {"platform": {"cpu": "x"}}, {"platform": {"commit": None, "modified": None}}])
     assert line == ("code: commit aaaaaaaa (2 episodes), commit bbbbbbbb+modified (1 episodes), "
                     "unrecorded (1 episodes), no git checkout (1 episodes)")
+
+
+def test_output_cut_short_by_a_closed_pipe_is_not_a_traceback(monkeypatch):
+    """`activetouch tasks | head -1`: the reader leaves, writes raise BrokenPipeError; the CLI stops quietly."""
+    import sys
+
+    class Closed:
+        def write(self, s):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(sys, "stdout", Closed())
+    assert main(["tasks"]) == 0

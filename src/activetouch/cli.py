@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import runpy
 import sys
 from pathlib import Path
@@ -506,6 +507,14 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader of our output left (`activetouch table DIR | head`): stop quietly, as `cat` does, and keep the
+        # interpreter's final flush from raising again (the recipe of Python's signal module docs)
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (AttributeError, OSError, ValueError):  # stdout replaced by an object without a file descriptor
+            pass
+        return 0
 
 
 if __name__ == "__main__":  # pragma: no cover
