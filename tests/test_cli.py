@@ -197,3 +197,32 @@ def test_output_cut_short_by_a_closed_pipe_is_not_a_traceback(monkeypatch):
 
     monkeypatch.setattr(sys, "stdout", Closed())
     assert main(["tasks"]) == 0
+
+
+def test_table_stop_at_beta_t_replays_no_terminate_episodes_and_refuses_terminated_ones(capsys, tmp_path):
+    import json
+
+    from activetouch.experiments.stop_rule import object_diagonal
+
+    lc = object_diagonal("box-0")
+    for seed, (nll_late, apc_late) in enumerate([(100.0, 0.025), (100.0, 0.015)]):
+        d = _fake_episode(tmp_path / "free", "box-0", "rumi", seed, terminate_on_convergence=False)
+        s = json.loads((d / "summary.json").read_text())
+        write = {**s, "nll_threshold": 150.0, "prior_apc": 0.3}
+        (d / "summary.json").write_text(json.dumps(write))
+        rows = [(0, 900.0, 0.3), (1, 400.0, 0.025), (2, nll_late, apc_late)]
+        (d / "steps.csv").write_text("step,nll,apc\n" + "".join(f"{k},{n},{a * lc}\n" for k, n, a in rows))
+    assert main(["table", str(tmp_path / "free"), "--stop-at-beta-t", "0.03", "0.02"]) == 0
+    out = capsys.readouterr().out
+    # beta 0.03: both stop at step 1 (APC 0.025 l_c) before their NLL reaches 150; beta 0.02: seed 0 never stops
+    # (runs to step 2, a success), seed 1 stops at step 2 (APC 0.015 l_c) with its success
+    assert "| 0.03 | box-0 | rumi | 0/2 |" in out and "| 0.02 | box-0 | rumi | 2/2 |" in out
+    d = _fake_episode(tmp_path / "stopped", "box-0", "rumi", 0)  # terminated (the default)
+    assert main(["table", str(tmp_path / "stopped"), "--stop-at-beta-t", "0.03"]) == 2
+    assert "has no steps.csv" in _err(capsys)
+    (d / "steps.csv").write_text("step,nll,apc\n0,900.0,0.3\n")
+    s = json.loads((d / "summary.json").read_text())
+    (d / "summary.json").write_text(json.dumps({**s, "nll_threshold": 150.0, "prior_apc": 0.3}))
+    assert main(["table", str(tmp_path / "stopped"), "--stop-at-beta-t", "0.03"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and "ran with APC termination" in captured.err and captured.err.count("\n") == 1

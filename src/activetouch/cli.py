@@ -6,6 +6,7 @@
     activetouch run mug-0 --method rumi --seed 0 --out runs/mug0
     activetouch sweep --tasks mug-0 mug-1 --methods rumi info-only --seeds 10 --out runs/sweep --workers 2
     activetouch table runs/sweep               results next to the paper's Tables V/VI
+    activetouch table runs/noterm --stop-at-beta-t 0.03 0.02   a --no-terminate sweep scored at other APC stops
     activetouch report runs/sweep              Tables V, VI, VII as CSV + Markdown and the Fig. 16 NLL curves
     activetouch demo                           RUMI on mug-2 with figures (the README's demo)
     activetouch bench {belief,step,planning,touch-ig,touch-step,grasp-env,poke-push,touch-ablation,tiqf,clutter,nbt,first-view,all}
@@ -36,6 +37,8 @@ def _episode_args(p: argparse.ArgumentParser, method: bool = True) -> None:
     p.add_argument("--rollouts", type=int, default=None, help="stochastic rollouts per sample (paper: 5)")
     p.add_argument("--horizon", type=int, default=None, help="KMPPI horizon H (paper: 15)")
     p.add_argument("--no-terminate", action="store_true", help="run all T steps even after APC convergence")
+    p.add_argument("--beta-t", type=float, default=0.03,
+                   help="RUMI tasks: stop when APC < BETA_T l_c (Eq. 33; paper, sim: 0.03)")
     p.add_argument("--planner", action="append", default=[], metavar="KEY=VALUE",
                    help="override a planner setting (repeatable), e.g. --planner predict=static (the method's config)")
     p.add_argument("--belief", action="append", default=[], metavar="KEY=VALUE",
@@ -62,10 +65,10 @@ def _episode_config(a, task: str, seed: int):
     if both:
         raise ValueError(f"--planner sets {both}, which --samples / --rollouts / --horizon already set")
     planner.update(extra)
-    return EpisodeConfig(task=task, method=getattr(a, "method", "rumi"), seed=seed, steps=a.steps, particles=a.particles, device=a.device,
-                         use_chsel=not a.no_chsel, chsel_iterations=a.chsel_iterations, observe_dT=not a.estimate_dT,
-                         terminate_on_convergence=not a.no_terminate, planner=planner, figures=not a.no_figures,
-                         belief=_key_values(a.belief, "--belief"))
+    return EpisodeConfig(task=task, method=getattr(a, "method", "rumi"), seed=seed, steps=a.steps, particles=a.particles,
+                         device=a.device, use_chsel=not a.no_chsel, chsel_iterations=a.chsel_iterations,
+                         observe_dT=not a.estimate_dT, terminate_on_convergence=not a.no_terminate, beta_t=a.beta_t,
+                         planner=planner, figures=not a.no_figures, belief=_key_values(a.belief, "--belief"))
 
 
 def _print_grasp_summary(s: dict, out: Path) -> None:
@@ -277,10 +280,26 @@ def cmd_table(a) -> int:
     if not summaries:
         raise ValueError(f"no finished episodes (summary.json) under {a.root}")
     settings = check_same_settings(summaries)
+    stop_betas = getattr(a, "stop_at_beta_t", None)
+    if stop_betas:  # checked before anything is printed: a wrong folder gives one line, not a half answer
+        from activetouch.experiments.records import read_steps
+        from activetouch.experiments.stop_rule import stop_rule_markdown, stop_rule_rows
+
+        episodes = []
+        for s in summaries:
+            p = Path(s["_dir"]) / "steps.csv"
+            if not p.exists():
+                raise ValueError(f"{s['_dir']} has no steps.csv: --stop-at-beta-t replays each episode's APC")
+            episodes.append((s, read_steps(p)))
+        stop_table = stop_rule_markdown(stop_rule_rows(episodes, stop_betas))
     print(f"{len(summaries)} episodes, settings {settings_key(summaries[0]['config'])}: "
           + ", ".join(f"{k}={v}" for k, v in settings.items()))
     print(_code_line(summaries))
     print(_tables(summaries))
+    if stop_betas:
+        print("\nHad each episode stopped at APC < beta_t l_c (RUMI Eq. 33; replayed from the --no-terminate "
+              "episodes' steps.csv, exact: the stop rule never changes what the robot or the belief does):\n"
+              + stop_table)
     if getattr(a, "grid", False):
         from activetouch.experiments.grid_table import grid_markdown
 
@@ -459,6 +478,9 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("table", help="table of finished episodes under a folder, next to the paper's")
     t.add_argument("root")
     t.add_argument("--grid", action="store_true", help="also the one-row-per-(task, method) grid table")
+    t.add_argument("--stop-at-beta-t", type=float, nargs="+", default=None, metavar="BETA",
+                   help="also the successes had each episode stopped at APC < BETA l_c (RUMI tasks; needs episodes "
+                        "run with --no-terminate), e.g. --stop-at-beta-t 0.03 0.02")
     t.set_defaults(func=cmd_table)
 
     rp = sub.add_parser("report", help="Tables V, VI, VII (CSV + Markdown) and Fig. 16 curves of a finished sweep")
