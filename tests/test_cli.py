@@ -208,7 +208,7 @@ def test_table_stop_at_beta_t_replays_no_terminate_episodes_and_refuses_terminat
     for seed, (nll_late, apc_late) in enumerate([(100.0, 0.025), (100.0, 0.015)]):
         d = _fake_episode(tmp_path / "free", "box-0", "rumi", seed, terminate_on_convergence=False)
         s = json.loads((d / "summary.json").read_text())
-        write = {**s, "nll_threshold": 150.0, "prior_apc": 0.3}
+        write = {**s, "nll_threshold": 150.0, "prior_apc": 0.3, "apc_termination": False}
         (d / "summary.json").write_text(json.dumps(write))
         rows = [(0, 900.0, 0.3), (1, 400.0, 0.025), (2, nll_late, apc_late)]
         (d / "steps.csv").write_text("step,nll,apc\n" + "".join(f"{k},{n},{a * lc}\n" for k, n, a in rows))
@@ -222,7 +222,8 @@ def test_table_stop_at_beta_t_replays_no_terminate_episodes_and_refuses_terminat
     assert "has no steps.csv" in _err(capsys)
     (d / "steps.csv").write_text("step,nll,apc\n0,900.0,0.3\n")
     s = json.loads((d / "summary.json").read_text())
-    (d / "summary.json").write_text(json.dumps({**s, "nll_threshold": 150.0, "prior_apc": 0.3}))
+    s.update(nll_threshold=150.0, prior_apc=0.3, apc_termination=True)
+    (d / "summary.json").write_text(json.dumps(s))
     assert main(["table", str(tmp_path / "stopped"), "--stop-at-beta-t", "0.03"]) == 2
     captured = capsys.readouterr()
     assert captured.out == "" and "ran with APC termination" in captured.err and captured.err.count("\n") == 1

@@ -33,7 +33,7 @@ def test_a_success_after_the_stop_does_not_count():
 
 def _summary(**kw):
     s = {"task": "box-0", "method": "rumi", "seed": 0, "nll_threshold": 150.0, "prior_apc": 0.08,
-         "config": {"terminate_on_convergence": False}}
+         "apc_termination": False, "config": {"terminate_on_convergence": False}}
     s.update(kw)
     return s
 
@@ -44,6 +44,10 @@ def test_refuses_terminated_or_non_rumi_episodes_and_bad_betas():
         stop_rule_rows([(_summary(config={"terminate_on_convergence": True}), rows)], [0.03])
     with pytest.raises(ValueError, match="not a RUMI-task episode"):
         stop_rule_rows([(_summary(nll_threshold=None), rows)], [0.03])
+    no_apc = _summary(method="contact-slide")
+    del no_apc["apc_termination"]
+    with pytest.raises(ValueError, match="does not stop on APC"):
+        stop_rule_rows([(no_apc, rows)], [0.03])
     with pytest.raises(ValueError, match="beta_t must be in"):
         stop_rule_rows([(_summary(), rows)], [0.0])
     with pytest.raises(ValueError, match="apc_stop"):

@@ -84,6 +84,8 @@ def stop_rule_rows(episodes: Sequence[tuple[dict[str, Any], Sequence[dict[str, A
         where = f"{s.get('method')} on {s.get('task')} seed {s.get('seed')}"
         if s.get("nll_threshold") is None:
             raise ValueError(f"{where} is not a RUMI-task episode (no NLL threshold): the APC stop rule is RUMI's")
+        if "apc_termination" not in s:  # RumiEstimator records it; the other estimators never stop on APC
+            raise ValueError(f"{where}: its estimator does not stop on APC (only RUMI's particle belief does)")
         if (s.get("config") or {}).get("terminate_on_convergence", True):
             raise ValueError(f"{where} ran with APC termination: a what-if stop needs episodes run with "
                              "--no-terminate (a stopped episode cannot tell what a later stop would have seen)")
