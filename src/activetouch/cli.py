@@ -66,8 +66,9 @@ def _episode_config(a, task: str, seed: int):
         raise ValueError(f"--planner sets {both}, which --samples / --rollouts / --horizon already set")
     planner.update(extra)
     return EpisodeConfig(task=task, method=getattr(a, "method", "rumi"), seed=seed, steps=a.steps,
-                         particles=a.particles, device=a.device, use_chsel=not a.no_chsel, chsel_iterations=a.chsel_iterations,
-                         observe_dT=not a.estimate_dT, terminate_on_convergence=not a.no_terminate, beta_t=a.beta_t,
+                         particles=a.particles, device=a.device, use_chsel=not a.no_chsel,
+                         chsel_iterations=a.chsel_iterations, observe_dT=not a.estimate_dT,
+                         terminate_on_convergence=not a.no_terminate, beta_t=a.beta_t,
                          planner=planner, figures=not a.no_figures, belief=_key_values(a.belief, "--belief"))
 
 
