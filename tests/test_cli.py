@@ -227,3 +227,12 @@ def test_table_stop_at_beta_t_replays_no_terminate_episodes_and_refuses_terminat
     assert main(["table", str(tmp_path / "stopped"), "--stop-at-beta-t", "0.03"]) == 2
     captured = capsys.readouterr()
     assert captured.out == "" and "ran with APC termination" in captured.err and captured.err.count("\n") == 1
+
+
+def test_beta_t_is_refused_where_no_belief_stops_on_apc(capsys, tmp_path):
+    # the touch-only grasp tasks' particle filter ends with the grasp, not on APC: a --beta-t there would be ignored
+    assert main(["run", "grasp-box-0", "--method", "touch-uninformed", "--beta-t", "0.02", "--out", str(tmp_path)]) == 2
+    err = _err(capsys)
+    assert "--beta-t" in err and "never stops on APC" in err
+    assert main(["run", "mug-0", "--beta-t", "1.5", "--out", str(tmp_path / "m")]) == 2
+    assert "beta_t must be in (0, 1)" in _err(capsys)

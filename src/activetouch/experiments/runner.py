@@ -110,6 +110,9 @@ def check_config(cfg: EpisodeConfig, out_dir: str | Path | None = None):
     env = task.make_env(seed=cfg.seed, observe_dT=cfg.observe_dT) if "object-motion" in task.provides \
         else task.make_env(seed=cfg.seed)
     est = belief.make(env, cfg, cfg.device)
+    if cfg.beta_t != EpisodeConfig.beta_t and not hasattr(est, "terminate"):  # RumiEstimator stops on APC
+        raise ValueError(f"--beta-t sets RUMI's APC stop (Eq. 33), but {cfg.method!r} on {cfg.task!r} uses the belief "
+                         f"{method.belief!r}, which never stops on APC")
     try:
         method.make_planner(env, est.config, cfg.seed, **cfg.planner)
     except TypeError as e:  # an override the factory does not take

@@ -4,7 +4,8 @@ RUMI ends an episode when the pose particles converge, ``APC(T_1..P) < beta_t l_
 uses beta_t = 0.03 in sim), and a run succeeds when its NLL falls below Table III's threshold at some step before
 it ends. The stop rule decides only *when* to stop, never what the robot or the belief does: an episode run with
 ``--no-terminate`` takes, step for step, the same actions and holds the same particles as the terminated
-episode of the same seed, up to where that one stopped (checked on box-0..2, 30 seeds: identical NLL rows).
+episode of the same seed, up to where that one stopped (checked on box-0..2: 150 episodes of five methods, identical
+NLL rows).
 So one ``--no-terminate`` sweep answers, exactly and without new runs, how any beta_t would have scored:
 
     activetouch sweep --tasks box-0 box-1 box-2 --methods rumi --seeds 10 --no-terminate --out runs/box-noterm
