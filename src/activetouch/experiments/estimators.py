@@ -97,7 +97,10 @@ class RumiEstimator:
 
     FIGURES = ("curves.png", "belief.png", "contact.png")
     #: particles replaced by contact-placed prior proposals at the step's resample (BeliefConfig.reinvigorate)
-    COLUMNS = ("reinvigorated",)
+    #: ``min_cost`` / ``mean_cost``: the lowest and the weighted mean ``C^(X_t, T_i)`` (Eq. 3) of the particles after
+    #: the update, i.e. how well the belief explains the evidence (no ground truth; ``true_discrepancy`` is the
+    #: truth's own C^ on the same features)
+    COLUMNS = ("reinvigorated", "min_cost", "mean_cost")
 
     def __init__(self, env, cfg, device):
         from activetouch.belief import BeliefConfig
@@ -201,6 +204,11 @@ class RumiEstimator:
         T = _as_tensor(info["true_pose"], self.device)
         with torch.no_grad():  # privileged diagnostic: is the evidence consistent with the truth? (small: yes)
             extra = {"true_discrepancy": float(self.belief.discrepancy(self.features, T.unsqueeze(0))[0])}
+            l = self.belief.last_discrepancy
+            if l is None or l.shape != self.belief.weights.shape:  # step 0 before any weigh/update
+                l = self.belief.discrepancy(self.features)
+            extra["min_cost"] = float(l.min())
+            extra["mean_cost"] = float((self.belief.weights * l).sum())
         m = {**extra, **pose_metrics(self.obj, self.poses, self.weights, info["true_pose"])}
         self._last = m
         return m
