@@ -47,7 +47,7 @@ def main(argv=None) -> int:
     view = ViewAction(tuple(ctr + 0.55 * np.array([-math.cos(el), 0.0, math.sin(el)])), tuple(ctr))
     w, c, (obs, *_) = timed(lambda: env.step(view), a.repeats)
     rows.append(("view (%dx%d rays, segmentation)" % (env.spec.camera_width, env.spec.camera_height), w, c))
-    cfg = DeclutterConfig(max_opening=env.gripper.max_opening, finger_width=2 * env.gripper.pad_half[0])
+    cfg = DeclutterConfig.for_gripper(env.gripper)
     sv = SegmentedView(obs.seg, obs.cloud, np.asarray(obs.camera.pos))
     w, c, _ = timed(lambda: plan_declutter(sv, 0, cfg), a.repeats)
     rows.append(("declutter decision (Eq. 1-2)", w, c))

@@ -200,26 +200,71 @@ def test_grasp_of_5cm_object_and_push_of_12cm_object():
     d = plan_declutter(view, 0, cfg)
     assert d.next_object == 1 and d.action == "grasp" and d.grasp is not None and d.push is None
 
-    wide = Scene((100, 100)).box(1, 0.02, 0.14, 0.02, 0.16, 0.05).box(0, 0.02, 0.14, 0.162, 0.19, 0.04).view()
+    # a 12 x 14 cm object and a flat target touching it: the finger starts over the target, above its 1 cm top
+    wide = Scene((100, 100)).box(1, 0.02, 0.14, 0.02, 0.16, 0.05).box(0, 0.02, 0.14, 0.162, 0.19, 0.01).view()
     g = grasp_candidate(wide, 1, cfg)
     assert g.width > cfg.max_opening and g.quality == 0.0
     d = plan_declutter(wide, 0, cfg)
-    assert d.action == "push" and d.push is not None and d.grasp is None
+    assert d.action == "push" and d.push is not None and d.push.clear and d.grasp is None and not d.blocked
+    # a 4 cm tall target there: the finger would land on it, and no turn clears it: nothing feasible
+    tall = Scene((100, 100)).box(1, 0.02, 0.14, 0.02, 0.16, 0.05).box(0, 0.02, 0.14, 0.162, 0.19, 0.04).view()
+    d = plan_declutter(tall, 0, cfg)
+    assert d.blocked and d.next_object is None and d.action is None
+    assert not plan_push(tall, 1, cfg).clear
+    # replanning: an action that failed on an object is not repeated, and the other one is taken only if feasible
+    assert plan_declutter(wide, 0, cfg, failed={1: {"push"}}).blocked
+    d = plan_declutter(view, 0, cfg, failed={1: {"grasp"}})  # its push would start on the 4 cm target
+    assert d.blocked and d.grasp is None and not plan_push(view, 1, cfg).clear
 
 
-def test_clutter_in_finger_sweep_lowers_quality():
+def test_clutter_beside_a_finger_lowers_quality_by_its_gap():
+    # object 1: pixel centres x 0.050..0.068 (w = 1.8 cm), y 0.04..0.118; closing along x the fingers open to
+    # w + 3 cm = 4.8 cm, so a finger's outer face (+ 5 mm margin) lies 2.4 + 1.2 + 0.5 = 4.1 cm from the middle
+    # x = 0.059; a 6 cm tall neighbour from x = 0.110 leaves a 1 cm gap: f = 1 cm / 2 cm
     alone = Scene().box(1, 0.05, 0.07, 0.04, 0.12, 0.05).view()
-    hemmed = Scene().box(1, 0.05, 0.07, 0.04, 0.12, 0.05).box(2, 0.03, 0.04, 0.04, 0.12, 0.06) \
-        .box(3, 0.08, 0.09, 0.04, 0.12, 0.06).view()
+    beside = Scene().box(1, 0.05, 0.07, 0.04, 0.12, 0.05).box(3, 0.11, 0.12, 0.04, 0.12, 0.06).view()
     low = Scene().box(1, 0.05, 0.07, 0.04, 0.12, 0.05).box(2, 0.03, 0.04, 0.04, 0.12, 0.01) \
         .box(3, 0.08, 0.09, 0.04, 0.12, 0.01).view()
-    q_alone = grasp_candidate(alone, 1).quality
-    q_hemmed = grasp_candidate(hemmed, 1).quality
-    assert q_alone == pytest.approx(1 - 0.018 / 0.09)
-    # each finger has a 1.2 cm gap out of a 5.6 cm sweep: factor (1.2 / 5.6)^2
-    assert q_hemmed == pytest.approx(q_alone * (0.012 / 0.056) ** 2, rel=1e-6)
-    assert q_hemmed < DeclutterConfig().mu_q < q_alone
-    assert grasp_candidate(low, 1).quality == pytest.approx(q_alone)  # below the fingertips: no collision
+    g_alone, g_beside = grasp_candidate(alone, 1), grasp_candidate(beside, 1)
+    assert g_alone.quality == pytest.approx(1 - 0.018 / 0.09) and abs(math.sin(g_alone.yaw)) < 1e-9
+    assert g_beside.quality == pytest.approx((1 - 0.018 / 0.09) * 0.5, rel=1e-6)
+    assert abs(math.sin(g_beside.yaw)) < 1e-9  # still across the minor axis: 0.4 beats 1 - 7.8 / 9 along y
+    assert grasp_candidate(low, 1).quality == pytest.approx(g_alone.quality)  # below the fingertips: no collision
+
+
+def test_grasp_turns_away_from_a_neighbour_in_the_fingers_path():
+    # a neighbour 1.7 cm beyond the object's side along x: inside the descending finger (4.1 cm from the middle)
+    view = Scene().box(1, 0.05, 0.07, 0.04, 0.12, 0.05).box(3, 0.085, 0.095, 0.04, 0.12, 0.06).view()
+    g = grasp_candidate(view, 1)
+    assert abs(abs(math.sin(g.yaw)) - 1) < 1e-9  # closes along y, over the object's length, clear of the neighbour
+    assert g.width == pytest.approx(0.078, abs=1e-9)
+    assert g.quality == pytest.approx(1 - 0.078 / 0.09, rel=1e-6) and g.quality >= DeclutterConfig().mu_q
+    # and a neighbour on both sides of the length too: no direction is clear, so Eq. 2 pushes
+    boxed = Scene().box(1, 0.05, 0.07, 0.04, 0.12, 0.05).box(3, 0.085, 0.095, 0.02, 0.14, 0.06) \
+        .box(2, 0.025, 0.035, 0.02, 0.14, 0.06).box(4, 0.04, 0.08, 0.125, 0.135, 0.06) \
+        .box(5, 0.04, 0.08, 0.025, 0.035, 0.06).box(0, 0.12, 0.14, 0.06, 0.10, 0.04).view()
+    assert grasp_candidate(boxed, 1).quality == 0.0
+
+
+def test_palm_over_a_tall_neighbour_forbids_the_grasp():
+    # a 20 cm neighbour 1.2 cm from the object's side: clear of the fingers when closing along y, but the palm
+    # (3.6 cm along the jaw + 5 mm margins, from z_g + 7 cm = 9.5 cm up) would land on it, and at every other
+    # direction the fingers or the palm meet it
+    tall = Scene().box(1, 0.05, 0.07, 0.04, 0.12, 0.05).box(3, 0.08, 0.09, 0.0, 0.16, 0.20) \
+        .box(0, 0.12, 0.14, 0.06, 0.10, 0.04).view()
+    assert grasp_candidate(tall, 1).quality == 0.0
+    short = Scene().box(1, 0.05, 0.07, 0.04, 0.12, 0.05).box(3, 0.08, 0.09, 0.0, 0.16, 0.06) \
+        .box(0, 0.12, 0.14, 0.06, 0.10, 0.04).view()
+    assert grasp_candidate(short, 1).quality == pytest.approx(1 - 0.078 / 0.09, rel=1e-6)
+
+
+def test_config_for_the_simulated_gripper():
+    from activetouch.sim.clutter_env import CLUTTER_GRIPPER
+
+    cfg = DeclutterConfig.for_gripper(CLUTTER_GRIPPER, mu_q=0.2)
+    assert cfg.max_opening == CLUTTER_GRIPPER.max_opening and cfg.finger_width == pytest.approx(0.04)
+    assert cfg.finger_thickness == pytest.approx(0.012) and cfg.palm_height == pytest.approx(0.07)
+    assert cfg.palm_size == pytest.approx((0.036, 0.14)) and cfg.mu_q == 0.2
 
 
 def test_flat_object_has_low_quality():
@@ -238,8 +283,9 @@ def pixel_of(view, xy):
 
 
 def test_push_away_from_clutter_starts_outside_on_the_clutter_side():
-    view = Scene().box(1, 0.02, 0.07, 0.04, 0.12, 0.04).box(0, 0.11, 0.15, 0.04, 0.12, 0.05).view()
+    view = Scene().box(1, 0.02, 0.07, 0.04, 0.12, 0.04).box(0, 0.12, 0.16, 0.04, 0.12, 0.05).view()
     push = plan_push(view, 1)
+    assert push.clear  # the finger (2 cm + 5 mm margins) at 3 cm from the contour ends 7 mm before the target
     np.testing.assert_allclose(push.direction, [-1.0, 0.0, 0.0], atol=1e-9)
     assert push.length == 0.10
     assert push.start[0] == pytest.approx(0.068 + 0.03)  # 3 cm beyond the last pixel centre on the +x side
@@ -250,7 +296,7 @@ def test_push_away_from_clutter_starts_outside_on_the_clutter_side():
 
 
 def test_push_start_is_shifted_to_a_free_gripper_box():
-    scene = Scene().box(1, 0.02, 0.07, 0.04, 0.12, 0.04).box(0, 0.11, 0.15, 0.04, 0.12, 0.05) \
+    scene = Scene().box(1, 0.02, 0.07, 0.04, 0.12, 0.04).box(0, 0.12, 0.16, 0.04, 0.12, 0.05) \
         .box(2, 0.09, 0.11, 0.07, 0.09, 0.05)  # a small object right where the nominal finger would go
     view = scene.view()
     push = plan_push(view, 1)
@@ -267,8 +313,30 @@ def test_push_weights_favour_near_objects():
     # a near object on +x and a far one on +y: the push goes mostly along -x
     view = Scene((100, 100)).box(1, 0.04, 0.08, 0.04, 0.08, 0.04).box(0, 0.084, 0.10, 0.04, 0.08, 0.04) \
         .box(2, 0.04, 0.08, 0.17, 0.19, 0.04).view()
-    d = plan_push(view, 1).direction
+    d = plan_push(view, 1, DeclutterConfig(push_turns_deg=(0.0,))).direction  # the paper's direction, unturned
     assert d[0] < -0.9 and d[1] < 0 and abs(np.linalg.norm(d) - 1) < 1e-12
+
+
+def test_push_turns_when_the_gripper_cannot_descend_onto_the_start():
+    # the target 6 mm from the pushed object's side: a finger 3 cm behind the contour would land on it
+    view = Scene((100, 100)).box(1, 0.04, 0.08, 0.04, 0.08, 0.04).box(0, 0.084, 0.10, 0.04, 0.08, 0.04) \
+        .box(2, 0.04, 0.08, 0.17, 0.19, 0.04).view()
+    cfg = DeclutterConfig()
+    straight = plan_push(view, 1, DeclutterConfig(push_turns_deg=(0.0,)))
+    assert not straight.clear  # the paper's start, returned flagged when nothing is clear
+    push = plan_push(view, 1, cfg)
+    assert push.clear
+    turn = math.degrees(math.acos(np.clip(push.direction @ straight.direction, -1, 1)))
+    assert turn == pytest.approx(20.0, abs=1e-6) or turn == pytest.approx(40.0, abs=1e-6)
+    # no visible point above the fingertips in the closed fingers' footprint at the start
+    pts = view.points[view.seg >= 0]
+    rel = pts[:, :2] - push.start[:2]
+    d2 = push.direction[:2]
+    along, across = np.abs(rel @ d2), np.abs(rel @ np.array([-d2[1], d2[0]]))
+    hit = (pts[:, 2] > push.start[2]) & (along <= 0.5 * cfg.finger_width + cfg.collision_margin) \
+        & (across <= cfg.finger_thickness + cfg.collision_margin)
+    assert not hit.any()
+    assert push.direction[0] < 0  # still away from the target
 
 
 # ---------------------------------------------------------------------------------------------------------------

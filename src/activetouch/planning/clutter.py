@@ -83,9 +83,10 @@ class ClutterPlanner:
         self.nbt = NBTConfig(rays_per_face=config.rays_per_face, standoff=config.touch_standoff,
                              min_touches=config.min_touches, stop_translation=config.stop_translation,
                              stop_rotation_deg=config.stop_rotation_deg)
-        # the closed pads' footprint along a push is 4 cm (two 2 cm-wide pads side by side)
-        self.declutter_config = DeclutterConfig(max_opening=env.gripper.max_opening,
-                                                finger_width=2 * env.gripper.pad_half[0])
+        # the gripper's pads and palm, for the grasp's and the push's collision checks (a pad is 4 cm along the jaw)
+        from activetouch.sim.clutter_env import PICK_CLEARANCE
+
+        self.declutter_config = DeclutterConfig.for_gripper(env.gripper, grasp_clearance=PICK_CLEARANCE)
         obj = env.object
         lo, hi = (np.asarray(b, dtype=np.float64) for b in obj.bounds.numpy())
         self._lo, self._hi = lo, hi
@@ -224,8 +225,7 @@ class ClutterPlanner:
         return action, timings
 
     def _declutter(self, belief, obs):
-        from activetouch.planning.declutter import (SegmentedView, grasp_candidate, object_labels, plan_declutter,
-                                                    plan_push)
+        from activetouch.planning.declutter import SegmentedView, object_labels, plan_declutter
         from activetouch.sim.clutter_env import PickAction, PushAction, ViewAction
 
         c = self.config
@@ -244,27 +244,26 @@ class ClutterPlanner:
         if 0 not in object_labels(obs.seg, self.declutter_config.min_pixels):
             self.phase, self.last_decision = "vision", None  # the target is not in sight: nothing to reason on
             return None
-        decision = plan_declutter(view, 0, self.declutter_config)
+        # replanning after a failure (II-B-2): plan_declutter skips the actions that failed on an object and those
+        # whose gripper would land on a neighbour, in the paper's order of leaves and Eq. 2's action first
+        # the target's model at its estimate as an obstacle too: a transparent target's depth rays pass through it
+        T = belief.pose.detach().cpu().double().numpy()
+        target_pts = self._vertices.numpy() @ T[:3, :3].T + T[:3, 3]
+        decision = plan_declutter(view, 0, self.declutter_config, failed=self.failed, obstacles=target_pts)
         self.last_decision = decision
         self.decisions.append((np.asarray(obs.seg).copy(), decision))
         if decision.next_object is None or self.n_declutter >= c.max_declutter:
+            if decision.blocked:  # the paper's robot asks for help here
+                self.stop_reason = "declutter: no feasible grasp or push left"
             self.phase = "vision"
             return None
         k = int(decision.next_object)
-        action = decision.action
-        tried = self.failed.get(k, set())
-        if action in tried:  # replanning after a failure: the other action of Eq. 2
-            action = "push" if action == "grasp" else "grasp"
-            if action in tried:  # both failed on this object: give up decluttering (the paper's robot asks for help)
-                self.phase = "vision"
-                self.stop_reason = f"declutter: grasp and push of object {k} failed"
-                return None
         self.n_declutter += 1
-        self._pending = (k, action)
-        if action == "grasp":
-            g = decision.grasp if decision.grasp is not None else grasp_candidate(view, k, self.declutter_config)
+        self._pending = (k, decision.action)
+        if decision.action == "grasp":
+            g = decision.grasp
             return PickAction(k, tuple(map(float, g.position)), float(g.yaw), float(max(g.width, 0.01)))
-        p = decision.push if decision.push is not None else plan_push(view, k, self.declutter_config)
+        p = decision.push
         return PushAction(k, tuple(map(float, p.start)), tuple(map(float, p.direction)), float(p.length))
 
     def _vision(self, belief, obs):

@@ -40,7 +40,7 @@ Choices of ours where the paper is silent (each repeated where it is used):
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 
 import networkx as nx  # a hard dependency of torch, so always installed with activetouch
@@ -160,6 +160,16 @@ class DeclutterConfig:
     - gripper: ``max_opening`` = 0.09 m between the fingers, ``finger_width`` = 0.02 m (each finger's footprint is
       ``finger_width x finger_width``); ``grasp_min_height`` = 0.02 m, the visible height above the table from
       which on an object is tall enough to grasp (the height factor of ``grasp_candidate`` ramps up to it).
+    - the gripper's shape, for the collision checks of both actions (defaults: the simulated iiwa gripper's pads
+      and palm, ``sim.clutter_env.CLUTTER_GRIPPER``; ``for_gripper`` reads them off any gripper geometry):
+      ``finger_thickness`` = 0.012 m (each pad's extent along the closing direction), ``palm_size`` =
+      (0.036, 0.14) m (the palm's footprint along the jaw and along the closing direction), ``palm_height`` = 0.07 m
+      (the palm's underside above the fingertips); ``grasp_clearance`` = 0.03 m, the fingers open to the object's
+      width plus this (at most ``max_opening``), as ``ClutterEnv``'s pick does; ``collision_margin`` = 0.005 m,
+      the gripper's footprints grow by this (depth noise, arm tracking); ``free_distance`` = 0.02 m, the clearance
+      beyond a finger at which ``f_free`` saturates; ``grasp_yaws`` = 12 closing directions searched (every 15 deg,
+      plus the principal axis); ``push_turns_deg`` = (0, 20, -20, 40, -40), the deviations from the paper's push
+      direction tried in turn when no push start on the contour leaves the descending gripper clear.
     - push: ``push_length`` = 0.10 m straight push; ``push_offset`` = 0.03 m, the finger starts this far outside
       the contour; ``push_search_radius`` = 0.03 m, contour points this close to the nominal push point are the
       candidates of the gripper-box search; ``push_weight_power`` = 2, ``w_i = 1/|v_ik|^p``;
@@ -180,6 +190,25 @@ class DeclutterConfig:
     push_search_radius: float = 0.03
     push_weight_power: float = 2.0
     push_height_fraction: float = 0.5
+    finger_thickness: float = 0.012
+    palm_size: tuple[float, float] = (0.036, 0.14)
+    palm_height: float = 0.07
+    grasp_clearance: float = 0.03
+    collision_margin: float = 0.005
+    free_distance: float = 0.02
+    grasp_yaws: int = 12
+    push_turns_deg: tuple[float, ...] = (0.0, 20.0, -20.0, 40.0, -40.0)
+
+    @classmethod
+    def for_gripper(cls, gripper, **overrides) -> DeclutterConfig:
+        """The config whose gripper fields are those of ``gripper`` (a ``sim.grasp_scene.GraspGripperGeometry``:
+        box pads of half sizes ``pad_half`` (jaw, closing, height), palm of half sizes ``palm_half`` above them);
+        ``overrides`` set any other field."""
+        ph, qh = gripper.pad_half, gripper.palm_half
+        values = dict(max_opening=float(gripper.max_opening), finger_width=2.0 * ph[0], finger_thickness=2.0 * ph[1],
+                      palm_size=(2.0 * qh[0], 2.0 * qh[1]), palm_height=2.0 * ph[2])
+        values.update(overrides)
+        return cls(**values)
 
     def __post_init__(self):
         def check(name, ok, what):
@@ -191,8 +220,16 @@ class DeclutterConfig:
         for name in ("mu_d", "distance_unit", "min_distance", "max_opening", "finger_width", "grasp_min_height",
                      "push_length"):
             check(name, lambda x: x > 0 and math.isfinite(x), "> 0 and finite")
-        for name in ("push_offset", "push_search_radius", "push_weight_power"):
+        for name in ("finger_thickness", "palm_height", "free_distance"):
+            check(name, lambda x: x > 0 and math.isfinite(x), "> 0 and finite")
+        for name in ("push_offset", "push_search_radius", "push_weight_power", "grasp_clearance",
+                     "collision_margin"):
             check(name, lambda x: x >= 0 and math.isfinite(x), ">= 0 and finite")
+        check("palm_size", lambda x: len(x) == 2 and all(v > 0 and math.isfinite(v) for v in x),
+              "two positive finite sizes (along the jaw, along the closing direction)")
+        check("grasp_yaws", lambda x: int(x) == x and x >= 1, "an integer >= 1")
+        check("push_turns_deg", lambda x: len(x) >= 1 and all(math.isfinite(v) and abs(v) < 90 for v in x),
+              "a non-empty sequence of angles in (-90, 90) degrees")
         check("push_height_fraction", lambda x: 0.0 <= x <= 1.0, "in [0, 1]")
         check("min_pixels", lambda x: int(x) == x and x >= 1, "an integer >= 1")
 
@@ -445,15 +482,19 @@ def build_declutter_graph(edges: Mapping[tuple[int, int], float], target: int) -
 def next_object(graph: nx.DiGraph, target: int) -> int | None:
     """The object to remove next: the leaf of G (a non-target node without children) with the heaviest incoming
     edge ``e_ik`` (II-B; ties: the smaller label). ``None`` when the target has no neighbour (decluttered)."""
+    order = _leaves_in_order(graph, target)
+    return order[0] if order else None
+
+
+def _leaves_in_order(graph: nx.DiGraph, target: int) -> list[int]:
+    """The leaves of G (non-target nodes without children), heaviest incoming edge first (ties: smaller label)."""
     leaves = [k for k in graph.nodes if k != target and graph.out_degree(k) == 0]
-    if not leaves:
-        return None
 
     def incoming(k):
         (p,) = graph.predecessors(k)
         return graph.edges[p, k]["weight"]
 
-    return min(leaves, key=lambda k: (-incoming(k), k))
+    return sorted(leaves, key=lambda k: (-incoming(k), k))
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -478,29 +519,41 @@ class GraspCandidate:
     quality: float
 
 
-def grasp_candidate(view: SegmentedView, label: int, config: DeclutterConfig = DeclutterConfig()) -> GraspCandidate:
+def grasp_candidate(view: SegmentedView, label: int, config: DeclutterConfig = DeclutterConfig(),
+                    obstacles: np.ndarray | None = None) -> GraspCandidate:
     """Top-down antipodal grasp of object ``label`` and its quality ``q_k`` (II-B-2).
 
     A transparent analytic **stand-in for GG-CNN** [23] (its trained weights cannot be fetched here), from the
-    object's masked points only, as the paper masks GG-CNN's depth input with the segmentation:
+    object's masked points, as the paper masks GG-CNN's depth input with the segmentation, and the other objects'
+    points for the gripper's clearance. Like GG-CNN, which scores every pixel and angle and returns the best, we
+    score ``grasp_yaws`` closing directions (every ``180 / grasp_yaws`` deg, plus the principal minor axis of the
+    object's points) and keep the best (ties: the narrower grasp, then the minor axis). For a closing direction
+    ``b`` and the jaw direction ``a`` (both in the table plane):
 
-    - axes: principal axes of the object's points in the table plane; the gripper closes along the minor axis
-      ``b`` (``yaw`` = its direction), the finger band is ``|t| <= finger_width/2`` along the major axis ``a``
-      around the centroid;
-    - width ``w``: extent along ``b`` of the object's points inside the finger band (all points if the band is
-      empty); the grasp point is the middle of that extent, at the centroid along ``a``, at half the visible height
-      ``h`` (the 95th percentile of the object's ``z`` above the table ``z = 0``).
+    - the finger band is ``|t| <= finger_width/2 + collision_margin`` along ``a`` around the centroid; the width
+      ``w`` is the extent along ``b`` of the object's points in the band (all points if fewer than 2); the grasp
+      point is the middle of that extent at the centroid along ``a``, at height
+      ``z_g = max(h/2, h - palm_height + collision_margin)`` with ``h`` the visible height (95th percentile of the
+      object's ``z`` above the table ``z = 0``): half-way up, or as low as the palm clears the object's top;
+    - the fingers open to ``o = min(max_opening, w + grasp_clearance)`` and descend vertically onto ``z_g``: each
+      pad occupies ``o/2 <= +-s <= o/2 + finger_thickness`` along ``b`` by the band along ``a``, the palm
+      ``palm_size`` centred on the grasp point from ``z_g + palm_height`` up.
 
     ``q_k = f_open * f_free * f_height`` in ``[0, 1]``:
 
     - ``f_open = max(0, 1 - w / max_opening)``: the fraction of the opening left as clearance (0 when the object
       is wider than the open gripper);
-    - ``f_free = f_+ f_-``: each finger descends fully open at ``max_opening / 2`` from the grasp point and sweeps
-      inwards to the object; its sweep region is ``w/2 <= +-s <= max_opening/2 + finger_width`` along ``b`` by the
-      finger band along ``a``, of length ``L = (max_opening - w)/2 + finger_width``. ``f_+- = min(1, g / L)`` where
-      ``g`` is the gap from the object to the nearest point of another object (label ``>= 0``) inside the region
-      and higher than the fingertips (``z`` above the grasp point), ``g = inf`` if there is none;
+    - ``f_free = f_+ f_-``, 0 when another object's point (label ``>= 0``, the target included) lies in the palm's
+      descent volume (above ``z_g + palm_height - collision_margin``, footprint grown by ``collision_margin``);
+      else, per finger, ``f_+- = min(1, g / free_distance)`` with ``g`` the gap from the finger's outer face grown
+      by ``collision_margin`` to the nearest other point in the band beyond the object on that side and above
+      ``z_g`` (``f = 0`` when such a point lies inside the finger or between finger and object, ``g = inf`` if
+      there is none): a finger that lands on a neighbour, or closes on one, scores 0, so Eq. 2 pushes instead;
     - ``f_height = min(1, h / grasp_min_height)``: flat objects give the fingers nothing to hold.
+
+    Only the visible points count, plus ``obstacles (M, 3)``, world points of objects the view does not show (e.g.
+    the target's model at its estimated pose: a transparent target's depth rays report what lies behind it): a
+    neighbour hidden under an overhang cannot be avoided (GG-CNN has the same blindness).
     """
     geom_points = _finite(view.points[view.seg == label])
     if len(geom_points) < 3:
@@ -508,35 +561,51 @@ def grasp_candidate(view: SegmentedView, label: int, config: DeclutterConfig = D
     xy = geom_points[:, :2]
     centroid = xy.mean(axis=0)
     eigval, eigvec = np.linalg.eigh(np.cov((xy - centroid).T))
-    b = eigvec[:, 0]  # minor axis (smallest variance): closing direction
-    a = eigvec[:, 1]  # major axis
-    s, t = (xy - centroid) @ b, (xy - centroid) @ a
-    band = np.abs(t) <= 0.5 * config.finger_width
-    s_band = s[band] if np.count_nonzero(band) >= 2 else s
-    s_lo, s_hi = float(s_band.min()), float(s_band.max())
-    width = s_hi - s_lo
-    mid = centroid + 0.5 * (s_lo + s_hi) * b
+    minor = math.atan2(eigvec[1, 0], eigvec[0, 0])
     height = max(0.0, float(np.percentile(geom_points[:, 2], 95)))
-    z_grasp = 0.5 * height
-    position = np.array([mid[0], mid[1], z_grasp])
-
-    f_open = max(0.0, 1.0 - width / config.max_opening)
-    sweep = 0.5 * (config.max_opening - width) + config.finger_width
-    others = _finite(view.points[(view.seg >= 0) & (view.seg != label)])
-    others = others[others[:, 2] > z_grasp]
-    f_free = 1.0
-    if len(others) and sweep > 0:
-        so, to = (others[:, :2] - mid) @ b, (others[:, :2] - mid) @ a
-        in_band = np.abs(to) <= 0.5 * config.finger_width
-        for side in (1.0, -1.0):
-            gap = side * so[in_band] - 0.5 * width
-            gap = gap[(gap >= 0) & (gap <= sweep)]
-            if len(gap):
-                f_free *= min(1.0, float(gap.min()) / sweep)
+    m = config.collision_margin
+    z_grasp = max(0.5 * height, height - config.palm_height + m)
     f_height = min(1.0, height / config.grasp_min_height)
-    quality = float(np.clip(f_open * f_free * f_height, 0.0, 1.0))
-    yaw = (math.atan2(b[1], b[0]) + math.pi / 2) % math.pi - math.pi / 2
-    return GraspCandidate(position=position, yaw=yaw, width=width, quality=quality)
+    others = _finite(view.points[(view.seg >= 0) & (view.seg != label)])
+    if obstacles is not None:
+        others = np.vstack([others, _finite(obstacles)])
+    fingers = others[others[:, 2] > z_grasp]  # what a finger descending onto z_grasp can meet
+    palm = others[others[:, 2] > z_grasp + config.palm_height - m]  # what the palm can meet
+    half_band = 0.5 * config.finger_width + m
+    yaws = [minor] + [math.pi * j / config.grasp_yaws for j in range(config.grasp_yaws)]
+    best = None
+    for n, yaw in enumerate(yaws):
+        b = np.array([math.cos(yaw), math.sin(yaw)])
+        a = np.array([-b[1], b[0]])
+        s, t = (xy - centroid) @ b, (xy - centroid) @ a
+        band = np.abs(t) <= half_band
+        s_band = s[band] if np.count_nonzero(band) >= 2 else s
+        s_lo, s_hi = float(s_band.min()), float(s_band.max())
+        width = s_hi - s_lo
+        mid = centroid + 0.5 * (s_lo + s_hi) * b
+        opening = min(config.max_opening, width + config.grasp_clearance)
+        f_open = max(0.0, 1.0 - width / config.max_opening)
+        f_free = 1.0
+        if len(palm):
+            sp, tp = (palm[:, :2] - mid) @ b, (palm[:, :2] - mid) @ a
+            if ((np.abs(tp) <= 0.5 * config.palm_size[0] + m) & (np.abs(sp) <= 0.5 * config.palm_size[1] + m)).any():
+                f_free = 0.0
+        if f_free > 0 and len(fingers):
+            so, to = (fingers[:, :2] - mid) @ b, (fingers[:, :2] - mid) @ a
+            in_band = np.abs(to) <= half_band
+            outer = 0.5 * opening + config.finger_thickness + m
+            for side in (1.0, -1.0):
+                beyond = side * so[in_band]
+                beyond = beyond[beyond > 0.5 * width]  # past the object's side: in or beyond this finger's path
+                if len(beyond):
+                    f_free *= min(1.0, max(0.0, float(beyond.min()) - outer) / config.free_distance)
+        quality = float(np.clip(f_open * f_free * f_height, 0.0, 1.0))
+        key = (quality, -round(width, 9), -n)
+        if best is None or key > best[0]:
+            closing = (yaw + math.pi / 2) % math.pi - math.pi / 2
+            best = (key, GraspCandidate(position=np.array([mid[0], mid[1], z_grasp]), yaw=closing, width=width,
+                                        quality=quality))
+    return best[1]
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -547,15 +616,17 @@ def grasp_candidate(view: SegmentedView, label: int, config: DeclutterConfig = D
 @dataclass(frozen=True)
 class PushPlan:
     """A straight quasi-static push: the fingertip starts at ``start (3,)`` (world) and moves ``length`` metres
-    along ``direction (3,)`` (unit, horizontal)."""
+    along ``direction (3,)`` (unit, horizontal). ``clear``: the gripper's descent onto ``start`` met no visible
+    point (``plan_push`` step 4); False for the paper's nominal start taken when no start was clear."""
 
     start: np.ndarray
     direction: np.ndarray
     length: float
+    clear: bool = True
 
 
 def plan_push(view: SegmentedView, label: int, config: DeclutterConfig = DeclutterConfig(),
-              geometry: Mapping[int, ObjectGeometry] | None = None) -> PushPlan:
+              geometry: Mapping[int, ObjectGeometry] | None = None, obstacles: np.ndarray | None = None) -> PushPlan:
     """Push object ``label`` away from the clutter (II-B-1), everything in the table plane (world ``x-y``).
 
     1. Direction: with ``c_i`` the centre of object ``O_i``'s bounding rectangle, ``v_ik = c_k - c_i`` points from
@@ -575,7 +646,16 @@ def plan_push(view: SegmentedView, label: int, config: DeclutterConfig = Declutt
        image with the gripper's projected size; in the table plane the gripper's size needs no projection (the
        same thing for a top-down camera).
 
-    The start's height is ``push_height_fraction`` of the object's visible height at that contour point.
+    4. Clearance (ours, not in the paper): a candidate is kept only if the closed gripper can descend onto its start
+       without meeting a visible point (``_push_start_clear``: the fingers' and the palm's footprints against every
+       object's points, the pushed one's included, and ``obstacles (M, 3)``: world points of objects the view does
+       not show, as in ``grasp_candidate``); when no candidate is clear, the direction is turned by each of
+       ``push_turns_deg`` in turn; when none is clear at any turn, the nominal start of step 2 is returned with
+       ``clear=False``. In our runs most failed pushes were guarded descents stopped by a neighbour's top or by the
+       palm (7 cm above the fingertips, 14 cm across) landing on the target.
+
+    The start's height is ``push_height_fraction`` of the pushed object's highest visible point within
+    ``push_search_radius`` of the contour point (at least 1.5 cm).
     """
     if geometry is None:
         geometry = {lab: object_geometry(view, lab) for lab in object_labels(view.seg, config.min_pixels)}
@@ -598,8 +678,58 @@ def plan_push(view: SegmentedView, label: int, config: DeclutterConfig = Declutt
     if np.linalg.norm(direction) < 1e-12:
         direction = np.array([1.0, 0.0])
     direction = direction / np.linalg.norm(direction)
-    normal = np.array([-direction[1], direction[0]])
 
+    # Clearance of the descending gripper (ours; the paper's gripper-box IoU only looks at the other objects'
+    # boxes): the closed fingers come down vertically onto the start, so every visible point (any object, the pushed
+    # one included) above the fingertips in the fingers' footprint, or above the palm's underside in the palm's, is
+    # a collision that stops the guarded descent before the push begins. When no start near the nominal point is
+    # clear, the direction is turned by push_turns_deg in turn (still away from the clutter) before giving up and
+    # taking the paper's nominal choice.
+    every = _finite(view.points[view.seg >= 0])
+    if obstacles is not None:
+        every = np.vstack([every, _finite(obstacles)])
+    turns = [math.radians(x) for x in config.push_turns_deg]
+    fallback = None
+    for turn in turns:
+        c_, s_ = math.cos(turn), math.sin(turn)
+        d_t = np.array([c_ * direction[0] - s_ * direction[1], s_ * direction[0] + c_ * direction[1]])
+        cand_xy, cand_z, cand_dist = _push_candidates(k, centroid, d_t, config)
+        n_t = np.array([-d_t[1], d_t[0]])
+        box_axes = np.stack([d_t, n_t])
+        best = None  # (mean IoU, distance to the nominal point, candidate)
+        for c in range(len(cand_xy)):
+            start_xy = cand_xy[c] - config.push_offset * d_t
+            box = Rectangle(center=start_xy, axes=box_axes,
+                            size=np.array([config.finger_width, config.finger_width]))
+            if box.contains(k.points[:, :2]).any():
+                continue
+            if not _push_start_clear(every, start_xy, cand_z[c], d_t, config):
+                continue
+            mean_iou = np.mean([_polygon_iou(box.corners(), g.table_rectangle.corners()) for g in others]) \
+                if others else 0.0
+            key = (round(float(mean_iou), 12), float(cand_dist[c]), c)
+            best = key if best is None or key < best else best
+        if best is not None:
+            start_xy = cand_xy[best[2]] - config.push_offset * d_t
+            return PushPlan(start=np.array([start_xy[0], start_xy[1], cand_z[best[2]]]),
+                            direction=np.array([d_t[0], d_t[1], 0.0]), length=config.push_length, clear=True)
+        if fallback is None:  # the paper's own choice: the nominal point along the unturned direction
+            start_xy = cand_xy[0] - config.push_offset * d_t
+            fallback = PushPlan(start=np.array([start_xy[0], start_xy[1], cand_z[0]]),
+                                direction=np.array([d_t[0], d_t[1], 0.0]), length=config.push_length, clear=False)
+    return fallback
+
+
+def _push_candidates(k: ObjectGeometry, centroid: np.ndarray, direction: np.ndarray, config: DeclutterConfig):
+    """Push-start candidates of object ``k`` for a push along ``direction (2,)`` (``plan_push`` steps 2-3).
+
+    Returns ``(xy (C, 2), z (C,), dist (C,))``: the nominal contour point (where the ray from ``centroid (2,)``
+    along ``-direction`` leaves the contour) first, then the contour points behind the centroid within
+    ``push_search_radius`` of it, each with its finger height (``push_height_fraction`` of the highest point of
+    ``k`` within ``push_search_radius`` of it, at least 1.5 cm: the fingertips stay above the table) and its
+    distance to the nominal point.
+    """
+    normal = np.array([-direction[1], direction[0]])
     contour_xy = k.contour_points[:, :2]
     back = (contour_xy - centroid) @ (-direction)  # how far behind the centroid, seen along the push
     off_ray = np.abs((contour_xy - centroid) @ normal)
@@ -610,28 +740,33 @@ def plan_push(view: SegmentedView, label: int, config: DeclutterConfig = Declutt
     near_ray = np.flatnonzero(behind & (off_ray <= off_ray[behind].min() + spacing))
     hit = int(near_ray[np.lexsort((off_ray[near_ray], -back[near_ray]))[0]])  # furthest back, then closest
     nominal_xy = centroid - back[hit] * direction  # that contour point moved onto the ray
-
-    # candidates: the nominal point first, then the contour points around it (each with its height)
     dist = np.linalg.norm(contour_xy - nominal_xy, axis=1)
     near = np.flatnonzero(behind & (dist <= config.push_search_radius))
     cand_xy = np.vstack([nominal_xy[None], contour_xy[near]])
-    cand_z = np.concatenate([[k.contour_points[hit, 2]], k.contour_points[near, 2]])
     cand_dist = np.concatenate([[0.0], dist[near]])
-    box_axes = np.stack([direction, normal])
-    best = (math.inf, math.inf, 0)  # (mean IoU, distance to the nominal point, candidate); nominal if none fits
-    for c in range(len(cand_xy)):
-        start_xy = cand_xy[c] - config.push_offset * direction
-        box = Rectangle(center=start_xy, axes=box_axes, size=np.array([config.finger_width, config.finger_width]))
-        if box.contains(k.points[:, :2]).any():
-            continue
-        mean_iou = np.mean([_polygon_iou(box.corners(), g.table_rectangle.corners()) for g in others]) \
-            if others else 0.0
-        best = min(best, (round(float(mean_iou), 12), float(cand_dist[c]), c))
-    chosen = best[2]
-    start_xy = cand_xy[chosen] - config.push_offset * direction
-    start = np.array([start_xy[0], start_xy[1], config.push_height_fraction * max(0.0, cand_z[chosen])])
-    return PushPlan(start=start, direction=np.array([direction[0], direction[1], 0.0]), length=config.push_length)
+    tree = cKDTree(k.points[:, :2])
+    z = np.empty(len(cand_xy))
+    for c, xy in enumerate(cand_xy):
+        local = tree.query_ball_point(xy, config.push_search_radius)
+        top = float(k.points[local, 2].max()) if local else float(np.percentile(k.points[:, 2], 95))
+        z[c] = max(0.015, config.push_height_fraction * max(0.0, top))
+    return cand_xy, z, cand_dist
 
+
+def _push_start_clear(points: np.ndarray, start_xy: np.ndarray, z: float, direction: np.ndarray,
+                      config: DeclutterConfig) -> bool:
+    """Whether the closed gripper can descend vertically onto a push start: no point of ``points (N, 3)`` above
+    the fingertips ``z`` in the fingers' footprint (``finger_width`` along ``direction`` by twice
+    ``finger_thickness`` across: the two closed pads side by side), none above the palm's underside in the palm's
+    footprint (``palm_size[0]`` along, ``palm_size[1]`` across); footprints grown by ``collision_margin``."""
+    m = config.collision_margin
+    rel = points[:, :2] - start_xy
+    along = np.abs(rel @ direction)
+    across = np.abs(rel @ np.array([-direction[1], direction[0]]))
+    fingers = (points[:, 2] > z) & (along <= 0.5 * config.finger_width + m) & (across <= config.finger_thickness + m)
+    palm = (points[:, 2] > z + config.palm_height - m) & (along <= 0.5 * config.palm_size[0] + m) \
+        & (across <= 0.5 * config.palm_size[1] + m)
+    return not (fingers.any() or palm.any())
 
 # ----------------------------------------------------------------------------------------------------------------
 # The whole decision
@@ -650,6 +785,8 @@ class DeclutterDecision:
         grasp: the grasp of ``next_object`` when ``action == 'grasp'``, else ``None``.
         push: the push of ``next_object`` when ``action == 'push'``, else ``None``.
         edges: Eq. 1 for all pairs of objects of the view, ``{(i, j): e_ij}`` with ``i < j`` and ``e_ij > 0``.
+        blocked: the target still has neighbours but no leaf of G has a feasible action (``next_object`` is then
+            ``None``); False when ``next_object`` is set or the target is free.
     """
 
     graph: nx.DiGraph
@@ -658,20 +795,32 @@ class DeclutterDecision:
     grasp: GraspCandidate | None
     push: PushPlan | None
     edges: dict
+    blocked: bool = False
 
 
-def plan_declutter(view: SegmentedView, target_label: int,
-                   config: DeclutterConfig = DeclutterConfig()) -> DeclutterDecision:
+def plan_declutter(view: SegmentedView, target_label: int, config: DeclutterConfig = DeclutterConfig(),
+                   failed: Mapping[int, Collection[str]] | None = None,
+                   obstacles: np.ndarray | None = None) -> DeclutterDecision:
     """Section II-B: build the declutter graph around ``target_label`` and choose the next object and action.
 
     Eq. 1 edges between all objects of ``view`` (segments of at least ``min_pixels`` pixels), the BFS tree G rooted
     at the target, Eq. 2 actions from ``grasp_candidate``'s ``q_k`` for every object of G, and as next object the
     leaf with the heaviest incoming edge; its grasp (``q_k >= mu_q``) or push (``plan_push``).
+
+    Feasibility and replanning (ours; the paper re-plans after a failure detected by contact, II-B-2): an action
+    is *feasible* when its collision check passes (a grasp with ``q_k > 0``, a push with ``clear``) and it has not
+    failed on that object before (``failed``: ``{label: {'grasp', 'push'}}``, the actions that failed). The leaves
+    are taken in the paper's order (heaviest incoming edge first, ties: the smaller label), and for each the Eq. 2
+    action, then the other one; the first feasible pair is the decision. When no leaf has a feasible action the
+    decision is ``blocked`` (the paper's robot would ask for help): executing an action whose gripper is known to
+    land on a neighbour only spends an action and disturbs the pile. ``obstacles (M, 3)``: world points the view
+    does not show, avoided by both actions (``grasp_candidate``).
     """
     labels = object_labels(view.seg, config.min_pixels)
     if target_label not in labels:
         raise ValueError(f"target_label {target_label} is not an object of the view (labels with >= "
                          f"{config.min_pixels} pixels: {labels})")
+    failed = {} if failed is None else failed
     geometry = {lab: object_geometry(view, lab) for lab in labels}
     edges = declutter_edges(view, config, geometry)
     graph = build_declutter_graph(edges, target_label)
@@ -680,15 +829,26 @@ def plan_declutter(view: SegmentedView, target_label: int,
         if k == target_label:
             graph.nodes[k].update(quality=None, action=None)
             continue
-        grasps[k] = grasp_candidate(view, k, config)
+        grasps[k] = grasp_candidate(view, k, config, obstacles)
         graph.nodes[k].update(quality=grasps[k].quality, action=_action(grasps[k].quality, config))
-    k = next_object(graph, target_label)
-    if k is None:
+    order = _leaves_in_order(graph, target_label)
+    if not order:
         return DeclutterDecision(graph=graph, next_object=None, action=None, grasp=None, push=None, edges=edges)
-    action = graph.nodes[k]["action"]
-    grasp = grasps[k] if action == "grasp" else None
-    push = plan_push(view, k, config, geometry) if action == "push" else None
-    return DeclutterDecision(graph=graph, next_object=k, action=action, grasp=grasp, push=push, edges=edges)
+    for k in order:
+        eq2 = graph.nodes[k]["action"]
+        for action in (eq2, "push" if eq2 == "grasp" else "grasp"):
+            if action in failed.get(k, ()):
+                continue
+            if action == "grasp" and grasps[k].quality > 0:
+                return DeclutterDecision(graph=graph, next_object=k, action="grasp", grasp=grasps[k], push=None,
+                                         edges=edges)
+            if action == "push":
+                push = plan_push(view, k, config, geometry, obstacles)
+                if push.clear:
+                    return DeclutterDecision(graph=graph, next_object=k, action="push", grasp=None, push=push,
+                                             edges=edges)
+    return DeclutterDecision(graph=graph, next_object=None, action=None, grasp=None, push=None, edges=edges,
+                             blocked=True)
 
 
 # ----------------------------------------------------------------------------------------------------------------

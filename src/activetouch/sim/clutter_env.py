@@ -50,12 +50,16 @@ __all__ = [
     "ClutterObservation",
     "CLUTTER_POOL",
     "CLUTTER_GRIPPER",
+    "PICK_CLEARANCE",
 ]
 
 #: Clutter objects drawn per seed (packaged YCB meshes with convex decompositions).
 CLUTTER_POOL = ("tomato_soup_can", "sugar_box", "potted_meat_can", "foam_brick", "cracker_box", "mug",
                 "bleach_cleanser", "mustard_bottle", "drill")
 
+
+#: A pick opens the pads to the object's width plus this (m), at most the gripper's opening: 1.5 cm per side.
+PICK_CLEARANCE = 0.03
 
 #: The grasping scene's gripper with a palm and wrist no wider (ee x) than the pads, so the pads' edges lead a
 #: sideways touch or push (with the grasping gripper's 6 cm palm the palm's edge would touch tall objects first).
@@ -686,7 +690,7 @@ class ClutterEnv:
             raise ValueError(f"PickAction.label must name a clutter object 1..{len(self.names) - 1}, got {a.label}")
         yaw = a.closing_angle - math.pi / 2  # the pads close along the ee y-axis
         yaw = (yaw + math.pi / 2) % math.pi - math.pi / 2  # symmetric gripper
-        open_ = min(self.gripper.max_opening, a.width + 0.03) / 2
+        open_ = min(self.gripper.max_opening, a.width + PICK_CLEARANCE) / 2
         p = np.asarray(a.position, float)
         z_top = self.object_top(a.label)
         z_grasp = max(0.012, min(p[2], z_top - 0.02))
