@@ -258,6 +258,21 @@ def test_palm_over_a_tall_neighbour_forbids_the_grasp():
     assert grasp_candidate(short, 1).quality == pytest.approx(1 - 0.078 / 0.09, rel=1e-6)
 
 
+def test_obstacles_the_view_does_not_show_count_like_seen_objects():
+    # a transparent neighbour: segmented nowhere in the view, known only as points (e.g. its model at the estimate)
+    alone = Scene().box(1, 0.05, 0.07, 0.04, 0.12, 0.05).view()
+    beside = Scene().box(1, 0.05, 0.07, 0.04, 0.12, 0.05).box(3, 0.11, 0.12, 0.04, 0.12, 0.06)
+    hidden = beside.points[beside.seg == 3]
+    assert grasp_candidate(alone, 1, obstacles=hidden).quality == pytest.approx(grasp_candidate(beside.view(), 1).quality)
+    assert grasp_candidate(alone, 1, obstacles=hidden).quality < grasp_candidate(alone, 1).quality
+    # a hidden object where the push's finger would descend: the start moves off it
+    view = Scene().box(1, 0.02, 0.07, 0.04, 0.12, 0.04).box(0, 0.12, 0.16, 0.04, 0.12, 0.05).view()
+    free = plan_push(view, 1)
+    blocker = np.array([[free.start[0], free.start[1], 0.06], [free.start[0] + 0.005, free.start[1], 0.06]])
+    moved = plan_push(view, 1, obstacles=blocker)
+    assert moved.clear and np.linalg.norm(moved.start[:2] - free.start[:2]) > 0.01
+
+
 def test_config_for_the_simulated_gripper():
     from activetouch.sim.clutter_env import CLUTTER_GRIPPER
 
@@ -404,11 +419,19 @@ def test_bad_inputs_raise_naming_the_problem():
         plan_declutter(view, 0, DeclutterConfig(min_pixels=10_000))  # the target is a "tiny" segment now
     with pytest.raises(ValueError, match="object 9"):
         plan_push(view, 9)
+    with pytest.raises(ValueError, match="obstacles"):
+        grasp_candidate(view, 1, obstacles=np.zeros((4, 2)))
     with pytest.raises(ValueError, match="mu_o"):
         DeclutterConfig(mu_o=1.5)
     with pytest.raises(ValueError, match="finger_width"):
         DeclutterConfig(finger_width=0.0)
     with pytest.raises(ValueError, match="min_pixels"):
         DeclutterConfig(min_pixels=0)
+    with pytest.raises(ValueError, match="palm_size"):
+        DeclutterConfig(palm_size=(0.03,))
+    with pytest.raises(ValueError, match="grasp_yaws"):
+        DeclutterConfig(grasp_yaws=0)
+    with pytest.raises(ValueError, match="push_turns_deg"):
+        DeclutterConfig(push_turns_deg=(0.0, 95.0))
     with pytest.raises(ValueError, match="points"):
         min_area_rectangle(np.zeros((0, 2)))

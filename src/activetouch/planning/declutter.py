@@ -567,8 +567,7 @@ def grasp_candidate(view: SegmentedView, label: int, config: DeclutterConfig = D
     z_grasp = max(0.5 * height, height - config.palm_height + m)
     f_height = min(1.0, height / config.grasp_min_height)
     others = _finite(view.points[(view.seg >= 0) & (view.seg != label)])
-    if obstacles is not None:
-        others = np.vstack([others, _finite(obstacles)])
+    others = np.vstack([others, _obstacle_points(obstacles)])
     fingers = others[others[:, 2] > z_grasp]  # what a finger descending onto z_grasp can meet
     palm = others[others[:, 2] > z_grasp + config.palm_height - m]  # what the palm can meet
     half_band = 0.5 * config.finger_width + m
@@ -686,8 +685,7 @@ def plan_push(view: SegmentedView, label: int, config: DeclutterConfig = Declutt
     # clear, the direction is turned by push_turns_deg in turn (still away from the clutter) before giving up and
     # taking the paper's nominal choice.
     every = _finite(view.points[view.seg >= 0])
-    if obstacles is not None:
-        every = np.vstack([every, _finite(obstacles)])
+    every = np.vstack([every, _obstacle_points(obstacles)])
     turns = [math.radians(x) for x in config.push_turns_deg]
     fallback = None
     for turn in turns:
@@ -865,6 +863,16 @@ def _finite(points: np.ndarray) -> np.ndarray:
     """Rows of ``points (N, 3)`` without NaN / inf."""
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     return points[np.isfinite(points).all(axis=1)]
+
+
+def _obstacle_points(obstacles: np.ndarray | None) -> np.ndarray:
+    """``obstacles (M, 3)`` without NaN / inf rows; ``(0, 3)`` for ``None``."""
+    if obstacles is None:
+        return np.zeros((0, 3))
+    arr = np.asarray(obstacles, dtype=float)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"obstacles must have shape (M, 3), got {arr.shape}")
+    return _finite(arr)
 
 
 def _point_spacing(xy: np.ndarray) -> float:
