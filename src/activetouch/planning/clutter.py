@@ -245,8 +245,8 @@ class ClutterPlanner:
             self.phase, self.last_decision = "vision", None  # the target is not in sight: nothing to reason on
             return None
         # replanning after a failure (II-B-2): plan_declutter skips the actions that failed on an object and those
-        # whose gripper would land on a neighbour, in the paper's order of leaves and Eq. 2's action first
-        # the target's model at its estimate as an obstacle too: a transparent target's depth rays pass through it
+        # whose gripper would land on a neighbour, in the paper's order of leaves and Eq. 2's action first. The
+        # target's model at its estimate is an obstacle too: a transparent target's depth rays pass through it.
         T = belief.pose.detach().cpu().double().numpy()
         target_pts = self._vertices.numpy() @ T[:3, :3].T + T[:3, 3]
         decision = plan_declutter(view, 0, self.declutter_config, failed=self.failed, obstacles=target_pts)

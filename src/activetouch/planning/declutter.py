@@ -585,10 +585,9 @@ def grasp_candidate(view: SegmentedView, label: int, config: DeclutterConfig = D
         opening = min(config.max_opening, width + config.grasp_clearance)
         f_open = max(0.0, 1.0 - width / config.max_opening)
         f_free = 1.0
-        if len(palm):
-            sp, tp = (palm[:, :2] - mid) @ b, (palm[:, :2] - mid) @ a
-            if ((np.abs(tp) <= 0.5 * config.palm_size[0] + m) & (np.abs(sp) <= 0.5 * config.palm_size[1] + m)).any():
-                f_free = 0.0
+        palm_box = Rectangle(center=mid, axes=np.stack([a, b]), size=np.asarray(config.palm_size) + 2 * m)
+        if palm_box.contains(palm[:, :2], tol=0.0).any():
+            f_free = 0.0
         if f_free > 0 and len(fingers):
             so, to = (fingers[:, :2] - mid) @ b, (fingers[:, :2] - mid) @ a
             in_band = np.abs(to) <= half_band
@@ -758,13 +757,12 @@ def _push_start_clear(points: np.ndarray, start_xy: np.ndarray, z: float, direct
     ``finger_thickness`` across: the two closed pads side by side), none above the palm's underside in the palm's
     footprint (``palm_size[0]`` along, ``palm_size[1]`` across); footprints grown by ``collision_margin``."""
     m = config.collision_margin
-    rel = points[:, :2] - start_xy
-    along = np.abs(rel @ direction)
-    across = np.abs(rel @ np.array([-direction[1], direction[0]]))
-    fingers = (points[:, 2] > z) & (along <= 0.5 * config.finger_width + m) & (across <= config.finger_thickness + m)
-    palm = (points[:, 2] > z + config.palm_height - m) & (along <= 0.5 * config.palm_size[0] + m) \
-        & (across <= 0.5 * config.palm_size[1] + m)
-    return not (fingers.any() or palm.any())
+    axes = np.stack([direction, [-direction[1], direction[0]]])
+    fingers = Rectangle(center=start_xy, axes=axes,
+                        size=np.array([config.finger_width, 2 * config.finger_thickness]) + 2 * m)
+    palm = Rectangle(center=start_xy, axes=axes, size=np.asarray(config.palm_size) + 2 * m)
+    low, high = points[:, 2] > z, points[:, 2] > z + config.palm_height - m
+    return not (fingers.contains(points[low, :2], tol=0.0).any() or palm.contains(points[high, :2], tol=0.0).any())
 
 # ----------------------------------------------------------------------------------------------------------------
 # The whole decision
