@@ -89,6 +89,41 @@ def test_tiqf_belief_settings_are_checked():
                                          belief={"touch_cloud": "both"}), "cpu")
     with pytest.raises(ValueError, match="rho"):
         TiqfEstimator(env, EpisodeConfig(task="clutter-mustard", method="tiqf-static", belief={"rho": -1.0}), "cpu")
+    for bad in ({"touch_restarts": -1}, {"touch_restarts": 2.5}, {"restart_tol": 0.0}, {"restart_shift": "far"},
+                {"restart_min_points": 2}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            TiqfEstimator(env, EpisodeConfig(task="clutter-mustard", method="tiqf-visuo-tactile", belief=bad), "cpu")
+
+
+@pytest.mark.parametrize("restarts", [0, 6])
+def test_touches_correct_a_wrong_visual_estimate(restarts):
+    """The transparent target: the view shows what lies behind the glass (the model 6 cm away, turned 90 deg), then
+    touches give exact surface points. With restarts (around the prior, 3 cm and 15 deg off) the touches find the
+    target; without (the paper's single registration from the visual posterior) they stay near the wrong basin."""
+    env = _Env()
+    T = _true_pose()
+    info = {"true_pose": T.float()}
+    c, s = math.cos(math.pi / 2), math.sin(math.pi / 2)
+    Rx = torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]], dtype=torch.float64)
+    behind = make_pose(Rx @ T[:3, :3], T[:3, 3] + torch.tensor([0.06, 0.0, 0.03], dtype=torch.float64))
+    est = TiqfEstimator(env, EpisodeConfig(task="clutter-transparent", method="tiqf-visuo-tactile",
+                                           belief={"touch_restarts": restarts}), "cpu")
+    gen = torch.Generator().manual_seed(0)
+    est.initialise(_Task(), ClutterObservation("reset", np.zeros((0, 3))), info, gen)
+    est.observe(ClutterObservation("view", _surface_points(behind, 400, 0), success=True), info, None, gen)
+    adi_vis = est.metrics(info)["adi_mm"]
+    rows = [est.observe(ClutterObservation("touch", _surface_points(T, 3, 10 + k), success=True), info, None, gen)
+            for k in range(4)]
+    adi = est.metrics(info)["adi_mm"]
+    assert adi_vis > 30
+    assert all(r["n_tactile"] == 3 * (k + 1) for k, r in enumerate(rows))
+    if restarts:
+        assert "touch_restarts" not in rows[1]  # 6 points: too few for the residual to mean anything
+        assert rows[2]["touch_restarts"] >= 54 and rows[-1]["residual_mm"] < 1.0
+        assert adi < 5.0
+    else:
+        assert all("touch_restarts" not in r for r in rows)
+        assert adi > 10.0
 
 
 def test_clutter_prior_is_the_true_pose_perturbed():

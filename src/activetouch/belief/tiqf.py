@@ -48,6 +48,9 @@ __all__ = [
     "random_matching",
     "initial_state",
     "register",
+    "registration_residual",
+    "yaw_shift_starts",
+    "register_restarts",
 ]
 
 PAIRINGS = ("random", "centroid")
@@ -524,3 +527,108 @@ def register(model_points, scene_points, init, config: TIQFConfig = TIQFConfig()
     info = {"iterations": it, "converged": converged, "mean_residual": float(dist.mean()),
             "n_correspondences": n_corr, "time_s": time.perf_counter() - t0}
     return make_pose(R, t).to(out_dtype), final, info
+
+
+def registration_residual(model_points, scene_points, pose) -> float:
+    """Mean distance (m) from each scene point ``(N, 3)`` (world) to its nearest model point ``(M, 3)`` (object
+    frame) at ``pose (4, 4)``: how well the posed model explains the cloud (with a dense model, about 0.5 mm for
+    exact touches at the true pose of a YCB object and 20,000 model points)."""
+    from scipy.spatial import cKDTree
+
+    model = _check_cloud(model_points, "model_points", 1).detach().cpu().double()
+    scene = _check_cloud(scene_points, "scene_points", 1).detach().cpu().double()
+    T = check_poses(torch.as_tensor(pose), "pose").detach().cpu().double()
+    local = (scene - T[:3, 3]) @ T[:3, :3]
+    dist, _ = cKDTree(model.numpy()).query(local.numpy(), k=1)
+    return float(dist.mean())
+
+
+def yaw_shift_starts(pose, num_yaw: int, shift: float) -> torch.Tensor:
+    """Start poses ``(9 num_yaw, 4, 4)`` around ``pose (4, 4)``: its rotation turned about the world vertical through
+    its origin by ``k 360 / num_yaw`` deg (k = 0..num_yaw-1), each shifted by ``{-shift, 0, shift}`` m in world x
+    and y. The starts of :func:`register_restarts` for an object that stands on a table (yaw is what a coarse
+    prior knows least)."""
+    T = check_poses(torch.as_tensor(pose), "pose").detach().double()
+    if not (isinstance(num_yaw, int) and not isinstance(num_yaw, bool) and num_yaw >= 1):
+        raise ValueError(f"num_yaw must be an int >= 1, got {num_yaw!r}")
+    if not (math.isfinite(shift) and shift >= 0):
+        raise ValueError(f"shift must be finite and >= 0 m, got {shift!r}")
+    a = torch.arange(num_yaw, dtype=torch.float64, device=T.device) * (2 * math.pi / num_yaw)
+    Rz = torch.zeros(num_yaw, 3, 3, dtype=torch.float64, device=T.device)
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = a.cos(), -a.sin(), a.sin(), a.cos()
+    Rz[:, 2, 2] = 1.0
+    s = torch.tensor([-shift, 0.0, shift], dtype=torch.float64, device=T.device)
+    dxy = torch.cartesian_prod(s, s)  # (9, 2)
+    out = T.expand(num_yaw, 9, 4, 4).clone()
+    out[:, :, :3, :3] = (Rz @ T[:3, :3])[:, None]
+    out[:, :, :2, 3] = T[:2, 3] + dxy[None]
+    return out.reshape(-1, 4, 4)
+
+
+def register_restarts(model_points, scene_points, init, starts=None, config: TIQFConfig = TIQFConfig(),
+                      restart_tol: float = 0.001, residual=None, refine_rounds: int = 3, refine_starts: int = 30,
+                      refine_deg: float = 8.0, refine_shift: float = 0.005):
+    """:func:`register` from ``init``, then, if the result explains the cloud worse than ``restart_tol`` (m), again
+    from every start pose ``(S, 4, 4)`` (each with :func:`initial_state`'s prior), then, while the best result is
+    still worse than ``restart_tol``, up to ``refine_rounds`` rounds of ``refine_starts`` starts around the best
+    result (turned about a random axis by up to ``refine_deg`` deg and shifted by a normal ``refine_shift`` m per
+    axis; drawn from ``config.seed``, so deterministic); the result with the smallest residual wins.
+    ``residual(pose (4, 4)) -> float`` (m) scores a result: by default :func:`registration_residual` of the scene
+    to the model cloud, whose floor is the cloud's spacing (about 1 mm on a cereal-box-sized object at 20,000
+    points); an exact distance to the mesh has no such floor.
+
+    Why (beyond the paper): with nearest-neighbour correspondences a sparse cloud (5-12 tactile points) keeps the
+    registration in the basin it starts from: from the transparent target's wrong visual estimate (30-100 mm ADI)
+    the touches alone ended at a median 13.7 mm, from the true pose at 0.5 mm, and a wrong basin shows as a
+    residual of 1-10 mm against 0.4-0.7 mm at the truth (offline on logged touches, 20,000 model points).
+
+    Returns:
+        ``(pose (4, 4), state, info)`` as :func:`register`, with ``info["residual"]`` (m) and ``info["restarts"]``
+        (how many start poses were tried; 0 when the first result was good enough or there were none).
+
+    The refinement rounds exist because TIQF's own basin is narrow on a sparse cloud: 12 exact touches of the
+    mustard bottle registered from starts 15 deg and 3 cm off ended 2.7 mm from the touches (ADI 4.7 mm), three
+    rounds around the best took that to 0.6 mm (ADI 1.6 mm); from the true pose TIQF stays at 0.3 mm.
+    """
+    if not (math.isfinite(restart_tol) and restart_tol > 0):
+        raise ValueError(f"restart_tol must be finite and > 0 m, got {restart_tol!r}")
+    for name, v in (("refine_rounds", refine_rounds), ("refine_starts", refine_starts)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise ValueError(f"{name} must be an int >= 0, got {v!r}")
+    if not (math.isfinite(refine_deg) and refine_deg >= 0 and math.isfinite(refine_shift) and refine_shift >= 0):
+        raise ValueError(f"refine_deg and refine_shift must be finite and >= 0, got {refine_deg!r}, {refine_shift!r}")
+    if residual is None:
+        def residual(p):
+            return registration_residual(model_points, scene_points, p)
+    pose, state, info = register(model_points, scene_points, init, config)
+    best = (float(residual(pose)), pose, state, info)
+    n = 0
+    if starts is not None and best[0] > restart_tol:
+        S = check_poses(torch.as_tensor(starts), "starts")
+        S = S.reshape(-1, 4, 4)
+        for T0 in S:
+            p, s, i = register(model_points, scene_points, T0, config)
+            r = float(residual(p))
+            if r < best[0]:
+                best = (r, p, s, i)
+        n = int(S.shape[0])
+        from ..geometry import axis_angle_to_matrix
+
+        gen = torch.Generator(device="cpu").manual_seed(config.seed)
+        for _ in range(refine_rounds):
+            if best[0] <= restart_tol:
+                break
+            base = best[1].detach().cpu().double()
+            for _ in range(refine_starts):
+                axis = torch.randn(3, generator=gen, dtype=torch.float64)
+                angle = math.radians(refine_deg) * float(torch.rand((), generator=gen, dtype=torch.float64))
+                dR = axis_angle_to_matrix(axis / axis.norm() * angle)
+                dt = refine_shift * torch.randn(3, generator=gen, dtype=torch.float64)
+                T0 = make_pose(dR @ base[:3, :3], base[:3, 3] + dt).to(S.device)
+                p, s, i = register(model_points, scene_points, T0, config)
+                r = float(residual(p))
+                if r < best[0]:
+                    best = (r, p, s, i)
+                n += 1
+    r, pose, state, info = best
+    return pose, state, {**info, "residual": r, "restarts": n}

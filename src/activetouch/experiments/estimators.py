@@ -455,12 +455,24 @@ class TiqfEstimator:
     (``tactile``: register the tactile points alone, as the paper; ``visuo-tactile``: tactile and visual together;
     ``verify``: together when the touches lie within ``verify_tol`` (default 4 mm, median) of the surface at the
     estimate the views gave, else tactile alone: the touches verify the visual estimate or replace it).
+
+    Beyond the paper, a registration of the tactile points alone that explains them worse than ``restart_tol`` (default 1 mm mean
+    distance to the target's mesh) is restarted (``belief.tiqf.register_restarts``) from the prior turned about the vertical
+    in ``touch_restarts`` steps (default 6; 0: the paper's single registration from the carried-over posterior) and
+    shifted by ``restart_shift`` (default 3 cm) in x and y; the smallest residual wins; only from
+    ``restart_min_points`` (default 7) points on, since each touch point fixes about one degree of freedom (its
+    distance along the surface normal) and the residual of 6 or fewer says nothing about the pose. Why: a few touches keep TIQF's
+    nearest-neighbour registration in the basin it starts from, and a wrong visual estimate (the transparent target)
+    is a wrong basin. ``model_points`` is 20,000 (a 2,000-point model leaves 1-2.5 mm between exact touches and their
+    nearest model point, too coarse to tell a wrong basin from the right one).
     """
 
     FIGURES = ("tiqf.png", "declutter.png", "views.png")
     COLUMNS = ("adi_mm", "trans_err_mm", "action", "action_success", "contact_label", "n_visual", "n_tactile",
-               "tiqf_iterations", "tiqf_converged", "touch_cloud", "pose_change_mm", "pose_change_deg", "sigma_trace")
-    EXTRA = {"model_points": 2000, "voxel": 0.005, "touch_cloud": "tactile", "verify_tol": 0.004}
+               "tiqf_iterations", "tiqf_converged", "touch_cloud", "touch_restarts", "residual_mm", "pose_change_mm",
+               "pose_change_deg", "sigma_trace")
+    EXTRA = {"model_points": 20000, "voxel": 0.005, "touch_cloud": "tactile", "verify_tol": 0.004,
+             "touch_restarts": 6, "restart_shift": 0.03, "restart_tol": 0.001, "restart_min_points": 7}
 
     def __init__(self, env, cfg, device):
         from activetouch.belief.tiqf import TIQFConfig
@@ -476,6 +488,16 @@ class TiqfEstimator:
             raise ValueError(f"belief model_points must be an int >= 10, got {self.extra['model_points']!r}")
         if not (float(self.extra["voxel"]) > 0):
             raise ValueError(f"belief voxel must be > 0 m, got {self.extra['voxel']!r}")
+        r = self.extra["touch_restarts"]
+        if isinstance(r, bool) or not isinstance(r, int) or r < 0:
+            raise ValueError(f"belief touch_restarts must be an int >= 0 (0: no restarts), got {r!r}")
+        m = self.extra["restart_min_points"]
+        if isinstance(m, bool) or not isinstance(m, int) or m < 3:
+            raise ValueError(f"belief restart_min_points must be an int >= 3, got {m!r}")
+        for k in ("restart_shift", "restart_tol"):
+            v = self.extra[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+                raise ValueError(f"belief {k} must be a number > 0 (m), got {v!r}")
         known = {f.name for f in fields(TIQFConfig)}
         unknown = sorted(set(over) - known)
         if unknown:
@@ -528,7 +550,7 @@ class TiqfEstimator:
         return {}
 
     def observe(self, obs, info, ee_before, generator) -> dict[str, Any]:
-        from activetouch.belief.tiqf import register
+        from activetouch.belief.tiqf import register, register_restarts, yaw_shift_starts
         from activetouch.experiments.metrics import rotation_error, translation_error
         from activetouch.observations import voxel_representatives
 
@@ -540,7 +562,7 @@ class TiqfEstimator:
         row: dict[str, Any] = {"action": obs.kind, "action_success": bool(obs.success),
                                "contact_label": int(getattr(obs, "contact_label", -1))}
         pts = torch.as_tensor(np.asarray(obs.points, dtype=np.float64).reshape(-1, 3))
-        cloud = None
+        cloud, mode = None, None
         if obs.kind in ("push", "pick"):
             # decluttering moves things: the views taken before it no longer show the scene as it is
             b.visual = torch.zeros(0, 3, dtype=torch.float64)
@@ -559,7 +581,16 @@ class TiqfEstimator:
                     row["touch_cloud"] = mode
                 cloud = b.tactile if mode == "tactile" else torch.cat([b.tactile, b.visual])
         if cloud is not None and len(cloud) >= 3:
-            _, b.state, tinfo = register(b.model_points, cloud, b.state, self.config)
+            if (obs.kind == "touch" and mode == "tactile" and self.extra["touch_restarts"] > 0
+                    and len(cloud) >= self.extra["restart_min_points"]):
+                starts = yaw_shift_starts(b.history[0], int(self.extra["touch_restarts"]),
+                                          float(self.extra["restart_shift"]))
+                _, b.state, tinfo = register_restarts(b.model_points, cloud, b.state, starts, self.config,
+                                                      restart_tol=float(self.extra["restart_tol"]),
+                                                      residual=lambda T: self._mesh_residual(cloud, T))
+                row.update(touch_restarts=tinfo["restarts"], residual_mm=1000 * tinfo["residual"])
+            else:
+                _, b.state, tinfo = register(b.model_points, cloud, b.state, self.config)
             row.update(tiqf_iterations=tinfo["iterations"], tiqf_converged=bool(tinfo["converged"]))
         b.history.append(b.pose.clone())
         row.update(n_visual=len(b.visual), n_tactile=len(b.tactile),
@@ -588,6 +619,13 @@ class TiqfEstimator:
                    pose_change_mm=1000 * float(translation_error(b.pose, prev)),
                    pose_change_deg=math.degrees(float(rotation_error(b.pose, prev))))
         return row
+
+    def _mesh_residual(self, cloud: torch.Tensor, T: torch.Tensor) -> float:
+        """Mean distance (m) of the points ``cloud (N, 3)`` (world) to the target's mesh at the pose ``T (4, 4)``
+        (exact: no model-cloud spacing floor)."""
+        T = T.detach().cpu().double()
+        local = (cloud.detach().cpu().double() - T[:3, 3]) @ T[:3, :3]
+        return float(self.obj.sdf(local)[0].abs().mean())
 
     @staticmethod
     def _touch_residual(b: "TiqfBelief") -> float:
