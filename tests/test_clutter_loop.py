@@ -219,3 +219,4 @@ def test_table_prints_clutter_table_i_and_writes_fig6(tmp_path, capsys):
     assert "Visuo-tactile clutter, Table I" in out and "paper Median" in out
     assert "| tiqf-static | 1 |" in out and "| tiqf-active-vision | 1 |" in out
     assert (tmp_path / "fig6.png").stat().st_size > 10_000
+    assert (tmp_path / "fig6-clutter-mustard.png").stat().st_size > 10_000  # and one per target

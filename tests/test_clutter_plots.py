@@ -170,6 +170,20 @@ def test_error_curves_figure(tmp_path):
         cp.error_curves_figure(tmp_path / "none.png", {})
     with pytest.raises(ValueError):
         cp.error_curves_figure(tmp_path / "bad.png", {"m": [["not a row"]]})
+    assert_png(cp.error_curves_figure(tmp_path / "mean.png", episodes, stat="mean"))
+    with pytest.raises(ValueError, match="stat"):
+        cp.error_curves_figure(tmp_path / "x.png", episodes, stat="mode")
+
+
+def test_error_curve_statistics():
+    """The median line and its 25-75 % band ignore one lost episode; the mean and its std do not."""
+    series = [[2.0], [3.0], [4.0], [5.0], [200.0], [7.0, 1.0]]
+    mid, lo, hi, n = cp._stats(series, 0, "median")
+    assert (mid, n) == (4.5, 6) and lo == pytest.approx(3.25) and hi == pytest.approx(6.5)
+    m, lo_m, hi_m, _ = cp._stats(series, 0, "mean")
+    assert m == pytest.approx(221.0 / 6) and hi_m - m == pytest.approx(m - lo_m) and hi_m > 100
+    assert cp._stats(series, 1, "median")[::3] == (1.0, 1)  # only the episodes that reached index 1
+    assert np.isnan(cp._stats(series, 2)[0]) and cp._stats(series, 2)[3] == 0
 
 
 def test_load_episode_rows(tmp_path):

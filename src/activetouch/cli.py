@@ -313,6 +313,13 @@ def cmd_table(a) -> int:
             path = clutter_plots.error_curves_figure(Path(a.root) / "fig6.png", episodes,
                                                      title=f"Fig. 6: error after each view / touch ({a.root})")
             print(f"\nFig. 6 (ADI and translation error after each view and touch): {path}")
+            # per target too: pooled, the later touches are only the episodes that needed them (the hard ones)
+            for task in sorted({s["task"] for s in summaries if clutter_tables.is_clutter_summary(s)}):
+                eps = {m: rows for m, rows in clutter_plots.load_episode_rows(a.root, task).items() if rows}
+                if eps:
+                    p = clutter_plots.error_curves_figure(Path(a.root) / f"fig6-{task}.png", eps,
+                                                          title=f"Fig. 6: {task} ({a.root})")
+                    print(f"  {task}: {p}")
     return 0
 
 

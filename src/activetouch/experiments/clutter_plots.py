@@ -500,29 +500,41 @@ def acquisition_series(rows: Sequence[Mapping], metric: str = "adi_mm") -> tuple
     return views, touches
 
 
-def _stats(series: list[list[float]], k: int) -> tuple[float, float, int]:
-    """Mean, std and count over the episodes whose series reach index ``k`` (NaN values dropped)."""
+STATS = ("median", "mean")
+
+
+def _stats(series: list[list[float]], k: int, stat: str = "median") -> tuple[float, float, float, int]:
+    """``(centre, low, high, count)`` over the episodes whose series reach index ``k`` (NaN values dropped):
+    ``stat="median"``: the median and the 25th / 75th percentiles; ``"mean"``: the mean and mean -+ one std."""
     vals = np.array([s[k] for s in series if len(s) > k], dtype=float)
     vals = vals[np.isfinite(vals)]
     if len(vals) == 0:
-        return float("nan"), float("nan"), 0
-    return float(vals.mean()), float(vals.std()), len(vals)
+        return float("nan"), float("nan"), float("nan"), 0
+    if stat == "median":
+        lo, mid, hi = np.percentile(vals, [25, 50, 75])
+        return float(mid), float(lo), float(hi), len(vals)
+    m, sd = float(vals.mean()), float(vals.std())
+    return m, m - sd, m + sd, len(vals)
 
 
-def error_curves_figure(path: Path, episodes: Mapping[str, Sequence[Sequence[Mapping]]], title: str = "") -> Path:
+def error_curves_figure(path: Path, episodes: Mapping[str, Sequence[Sequence[Mapping]]], title: str = "",
+                        stat: str = "median") -> Path:
     """Fig. 6 over many episodes: for each method, the ADI (Eq. 28, left) and the translation error (Eq. 26,
     right) after the k-th acquisition of the perception phase (:func:`acquisition_series`): x = views 1..V, then
-    touches 1..T. The line is the mean over the episodes that reached that index, the band +- one standard
-    deviation; the number of those episodes is written in a strip under each panel, in the method's colour. A log
+    touches 1..T. The line is the median over the episodes that reached that index, the band the 25-75 %
+    range (``stat="mean"``: the mean and +- one standard deviation, which one episode that lost its target can
+    dominate); the number of those episodes is written in a strip under each panel, in the method's colour. A log
     scale is used when the plotted errors span more than a factor 8.
 
     ``episodes[method]``: a list of episodes, each a list of step rows (:func:`load_episode_rows`).
 
     Raises:
-        ValueError: no method, or an episode that is not a list of row mappings.
+        ValueError: no method, an episode that is not a list of row mappings, or an unknown ``stat``.
     """
     if not episodes:
         raise ValueError("episodes must hold at least one method")
+    if stat not in STATS:
+        raise ValueError(f"stat must be one of {STATS}, got {stat!r}")
     series: dict[str, dict[str, tuple[list, list]]] = {}
     for method, eps in episodes.items():
         eps = list(eps)
@@ -554,26 +566,26 @@ def error_curves_figure(path: Path, episodes: Mapping[str, Sequence[Sequence[Map
         drawn = {}
         for method in methods:
             views_s, touch_s = series[method][metric]
-            stats = [_stats(views_s, k) for k in range(n_views)] + [_stats(touch_s, k) for k in range(n_touch)]
-            drawn[method] = (np.array([s[0] for s in stats]), np.array([s[1] for s in stats]), [s[2] for s in stats])
-        vals = np.concatenate([np.concatenate([m, m + s]) for m, s, _ in drawn.values()]) if ticks else np.zeros(0)
+            stats = ([_stats(views_s, k, stat) for k in range(n_views)]
+                     + [_stats(touch_s, k, stat) for k in range(n_touch)])
+            drawn[method] = tuple(np.array([s[i] for s in stats]) for i in range(3)) + ([s[3] for s in stats],)
+        vals = np.concatenate([np.concatenate([m, hi]) for m, _, hi, _ in drawn.values()]) if ticks else np.zeros(0)
         vals = vals[np.isfinite(vals) & (vals > 0)]
         log = bool(len(vals) and vals.max() / vals.min() > 8)
         for m_i, method in enumerate(methods):
             c = colours[m_i % len(colours)]
-            mean, std, cnt = drawn[method]
+            mean, low, high, cnt = drawn[method]
             ax.plot([], [], "o-", c=c, label=f"{method} (n={len(episodes[method])} episodes)")
             if not len(mean):
                 continue
             ok = np.isfinite(mean)
-            low = mean - std
             if log:  # keep the band's lower edge on the log axis
                 low = np.maximum(low, 0.5 * vals.min())
             dx = (m_i - 0.5 * (len(methods) - 1)) * 0.06  # so that the methods' markers do not overlap
             for part in (xs_v, xs_t):  # no line across the view -> touch boundary
                 sel = np.isin(x, part) & ok
                 if sel.any():
-                    ax.fill_between(x[sel] + dx, low[sel], (mean + std)[sel], color=c, alpha=0.18, lw=0)
+                    ax.fill_between(x[sel] + dx, low[sel], high[sel], color=c, alpha=0.18, lw=0)
                     ax.plot(x[sel] + dx, mean[sel], "o-", c=c, ms=4, lw=1.6)
             for xi, n in zip(x, cnt):
                 ax_n.text(xi, len(methods) - 1 - m_i, f"{n}", ha="center", va="center", fontsize=7,
