@@ -154,26 +154,38 @@ class ClutterPlanner:
     def _clear(self, cands, pose: torch.Tensor, length: float):
         """The candidate touches whose gripper path keeps ``touch_clearance`` from every other object's observed
         points (the last view) and from where earlier touches met another object: the vertical descent to the ray's
-        start and the ray up to the estimate's surface. All candidates when none is clear. SIMPLIFICATION: the
-        paper's NBT has no such test (its scenes are decluttered); here the declutter phase may stop early."""
-        if len(self.obstacles) == 0:
-            return cands
-        from scipy.spatial import cKDTree
+        start and the ray up to the estimate's surface; and where the closed gripper (pads and palm,
+        ``planning.declutter.descent_clear``) can descend onto the ray's start without meeting those points or the
+        target's model at the estimate (a descent stopped on the target's handle and the retreat lifted the bottle
+        by it). All candidates when none is clear. SIMPLIFICATION: the paper's NBT has no such test (its scenes are
+        decluttered); here the declutter phase may stop early."""
+        from activetouch.planning.declutter import descent_clear
 
-        from activetouch.planning.nbt import ray_mesh_intersect
-
-        hit, _, dist_hit = ray_mesh_intersect(self._vertices, self._faces, pose, cands.starts, cands.directions,
-                                              length)
-        tree = cKDTree(self.obstacles)
         st = cands.starts.detach().cpu().double().numpy()
         d = cands.directions.detach().cpu().double().numpy()
-        reach = np.where(hit.cpu().numpy(), dist_hit.cpu().double().numpy(), length)
-        a = np.linspace(0.0, 1.0, 12)
-        ray = st[:, None, :] + a[None, :, None] * (reach[:, None] * d)[:, None, :]  # (N, 12, 3) up to the surface
-        up = st[:, None, :] + np.stack([np.zeros_like(a), np.zeros_like(a), 0.25 * a], 1)[None]  # the descent
-        path = np.concatenate([ray, up], 1)
-        dist, _ = tree.query(path.reshape(-1, 3))
-        ok = dist.reshape(len(st), -1).min(1) > self.config.touch_clearance
+        T = pose.detach().cpu().double().numpy()
+        target = self._vertices.numpy() @ T[:3, :3].T + T[:3, 3]
+        every = np.concatenate([target, self.obstacles]) if len(self.obstacles) else target
+        ok = np.ones(len(st), dtype=bool)
+        for i in range(len(st)):
+            h = d[i, :2]
+            h = h / np.linalg.norm(h) if np.linalg.norm(h) > 1e-6 else np.array([1.0, 0.0])  # the gripper's yaw
+            ok[i] = descent_clear(every, st[i, :2], max(float(st[i, 2]), 0.012), h, self.declutter_config)
+        if len(self.obstacles):
+            from scipy.spatial import cKDTree
+
+            from activetouch.planning.nbt import ray_mesh_intersect
+
+            hit, _, dist_hit = ray_mesh_intersect(self._vertices, self._faces, pose, cands.starts, cands.directions,
+                                                  length)
+            tree = cKDTree(self.obstacles)
+            reach = np.where(hit.cpu().numpy(), dist_hit.cpu().double().numpy(), length)
+            a = np.linspace(0.0, 1.0, 12)
+            ray = st[:, None, :] + a[None, :, None] * (reach[:, None] * d)[:, None, :]  # (N, 12, 3) to the surface
+            up = st[:, None, :] + np.stack([np.zeros_like(a), np.zeros_like(a), 0.25 * a], 1)[None]  # the descent
+            path = np.concatenate([ray, up], 1)
+            dist, _ = tree.query(path.reshape(-1, 3))
+            ok &= dist.reshape(len(st), -1).min(1) > self.config.touch_clearance
         if not ok.any():
             return cands
         return cands.subset(torch.as_tensor(np.nonzero(ok)[0]))

@@ -58,6 +58,7 @@ __all__ = [
     "SegmentedView",
     "build_declutter_graph",
     "contour_distance",
+    "descent_clear",
     "declutter_edges",
     "edge_weight",
     "grasp_candidate",
@@ -645,7 +646,7 @@ def plan_push(view: SegmentedView, label: int, config: DeclutterConfig = Declutt
        same thing for a top-down camera).
 
     4. Clearance (ours, not in the paper): a candidate is kept only if the closed gripper can descend onto its start
-       without meeting a visible point (``_push_start_clear``: the fingers' and the palm's footprints against every
+       without meeting a visible point (``descent_clear``: the fingers' and the palm's footprints against every
        object's points, the pushed one's included, and ``obstacles (M, 3)``: world points of objects the view does
        not show, as in ``grasp_candidate``); when no candidate is clear, the direction is turned by each of
        ``push_turns_deg`` in turn; when none is clear at any turn, the nominal start of step 2 is returned with
@@ -700,7 +701,7 @@ def plan_push(view: SegmentedView, label: int, config: DeclutterConfig = Declutt
                             size=np.array([config.finger_width, config.finger_width]))
             if box.contains(k.points[:, :2]).any():
                 continue
-            if not _push_start_clear(every, start_xy, cand_z[c], d_t, config):
+            if not descent_clear(every, start_xy, cand_z[c], d_t, config):
                 continue
             mean_iou = np.mean([_polygon_iou(box.corners(), g.table_rectangle.corners()) for g in others]) \
                 if others else 0.0
@@ -750,9 +751,9 @@ def _push_candidates(k: ObjectGeometry, centroid: np.ndarray, direction: np.ndar
     return cand_xy, z, cand_dist
 
 
-def _push_start_clear(points: np.ndarray, start_xy: np.ndarray, z: float, direction: np.ndarray,
-                      config: DeclutterConfig) -> bool:
-    """Whether the closed gripper can descend vertically onto a push start: no point of ``points (N, 3)`` above
+def descent_clear(points: np.ndarray, start_xy: np.ndarray, z: float, direction: np.ndarray,
+                  config: DeclutterConfig) -> bool:
+    """Whether the closed gripper can descend vertically onto a push (or touch) start: no point of ``points (N, 3)`` above
     the fingertips ``z`` in the fingers' footprint (``finger_width`` along ``direction`` by twice
     ``finger_thickness`` across: the two closed pads side by side), none above the palm's underside in the palm's
     footprint (``palm_size[0]`` along, ``palm_size[1]`` across); footprints grown by ``collision_margin``."""

@@ -292,6 +292,7 @@ class ClutterEnv:
         self._terminated = False
         self._n_actions = 0
         self._parked = False
+        self._motion_dir = np.array([0.0, 0.0, -1.0])  # the direction of the last straight ee motion
 
     @property
     def max_steps(self) -> int:
@@ -545,6 +546,8 @@ class ClutterEnv:
         ee = self.ee_state()
         goal = np.asarray(goal, float)
         dpos = goal[:3] - ee[:3]
+        if np.linalg.norm(dpos) > 1e-9:
+            self._motion_dir = dpos / np.linalg.norm(dpos)
         dyaw = float((goal[3] - ee[3] + math.pi) % (2 * math.pi) - math.pi)
         n = max(1, int(math.ceil(max(np.linalg.norm(dpos) / step, abs(dyaw) / 0.05))))
         q = self.current_q()
@@ -577,6 +580,23 @@ class ClutterEnv:
             self._hold(10)
             self._simulate(self.spec.settle_time)
             self._parked = True
+
+    def _reachable_yaw(self, pos: np.ndarray, yaw: float) -> float:
+        """The gripper is symmetric under a half turn: of ``yaw`` and ``yaw + pi``, the one the arm reaches at ``pos``
+        (IK from the current joints; the smaller rotation error, then the smaller turn from the current yaw). Without
+        this the wrist's last joint (limits +-3.05 rad) left yaws 1-2 rad short, so a touch led with the palm's 14 cm
+        side instead of its 3.6 cm side and the palm landed on the target."""
+        cur = float(self.ee_state()[3])
+        best = None
+        for c in (yaw, yaw + math.pi):
+            c = (c + math.pi) % (2 * math.pi) - math.pi
+            R = yaw_rotation(c)
+            q = self.ik.solve(self.current_q(), np.asarray(pos, float), R, iterations=60)
+            err = self.ik.error(q, np.asarray(pos, float), R)[1]
+            key = (round(err, 2), abs((c - cur + math.pi) % (2 * math.pi) - math.pi))
+            if best is None or key < best[0]:
+                best = (key, c)
+        return best[1]
 
     @staticmethod
     def _leading_yaw(direction: np.ndarray, current: float) -> float:
@@ -627,7 +647,8 @@ class ClutterEnv:
         d = np.asarray(a.direction, float)
         start = np.asarray(a.start, float)
         start[2] = max(start[2], 0.012)
-        yaw = self._leading_yaw(d, float(self.ee_state()[3]))
+        self._motion_dir = d
+        yaw = self._reachable_yaw(start, self._leading_yaw(d, float(self.ee_state()[3])))
         first: list = []
         guard = self._first_contact_guard(first)
         aborted = self._transit(np.array([*start, yaw]), 0.0, guard=guard)
@@ -641,11 +662,13 @@ class ClutterEnv:
         pts = np.array([p for (lab, _, p) in first if lab == 0]).reshape(-1, 3)
         # a contact with the target on the way to the start point is a touch too (the tactile points are real)
         touched = touched or (aborted and label == 0)
-        # retreat along the ray and up
-        back = self.ee_state()
-        back[:3] = back[:3] - 0.04 * d
-        back[2] = max(back[2], 0.012)
-        self._line(back, 0.0, self.spec.max_ee_step)
+        # retreat the way the gripper came, slowly while it may still touch
+        back_dir = self._motion_dir
+        for dist, step in ((0.01, self.spec.touch_step), (0.03, self.spec.max_ee_step)):
+            back = self.ee_state()
+            back[:3] = back[:3] - dist * back_dir
+            back[2] = max(back[2], 0.012)
+            self._line(back, 0.0, step)
         ok = touched and label == 0 and len(pts) > 0
         return ClutterObservation("touch", pts if ok else np.zeros((0, 3)), in_contact=ok, success=ok,
                                   contact_label=label)
@@ -657,7 +680,7 @@ class ClutterEnv:
         d = np.asarray(a.direction, float)
         start = np.asarray(a.start, float)
         start[2] = min(max(start[2], 0.015), max(0.015, self.object_top(a.label) - 0.01))
-        yaw = self._leading_yaw(d, float(self.ee_state()[3]))
+        yaw = self._reachable_yaw(start, self._leading_yaw(d, float(self.ee_state()[3])))
         before = self.object_poses()
         aborted = self._transit(np.array([*start, yaw]), 0.0, guard=lambda: bool(self._contacts()))
         touched = False
@@ -694,6 +717,7 @@ class ClutterEnv:
         p = np.asarray(a.position, float)
         z_top = self.object_top(a.label)
         z_grasp = max(0.012, min(p[2], z_top - 0.02))
+        yaw = self._reachable_yaw(np.array([p[0], p[1], z_grasp]), yaw)
         pre = np.array([p[0], p[1], z_top + 0.05, yaw])
         # open while in transit, guarded descent onto the grasp height
         self._hold(10, open_)
