@@ -456,15 +456,16 @@ class TiqfEstimator:
     ``verify``: together when the touches lie within ``verify_tol`` (default 4 mm, median) of the surface at the
     estimate the views gave, else tactile alone: the touches verify the visual estimate or replace it).
 
-    Beyond the paper, a registration of the tactile points alone that explains them worse than ``restart_tol`` (default 1 mm mean
-    distance to the target's mesh) is restarted (``belief.tiqf.register_restarts``) from the prior turned about the vertical
-    in ``touch_restarts`` steps (default 6; 0: the paper's single registration from the carried-over posterior) and
-    shifted by ``restart_shift`` (default 3 cm) in x and y; the smallest residual wins; only from
-    ``restart_min_points`` (default 7) points on, since each touch point fixes about one degree of freedom (its
-    distance along the surface normal) and the residual of 6 or fewer says nothing about the pose. Why: a few touches keep TIQF's
-    nearest-neighbour registration in the basin it starts from, and a wrong visual estimate (the transparent target)
-    is a wrong basin. ``model_points`` is 20,000 (a 2,000-point model leaves 1-2.5 mm between exact touches and their
-    nearest model point, too coarse to tell a wrong basin from the right one).
+    Beyond the paper, a registration of the tactile points alone that leaves them more than ``restart_tol``
+    (default 1 mm, mean distance to the target's mesh) from the surface is restarted
+    (``belief.tiqf.register_restarts``): from the prior turned about the vertical in ``touch_restarts`` steps
+    (default 6; 0: the paper's single registration from the carried-over posterior) and shifted by
+    ``restart_shift`` (default 3 cm) in x and y, then in rounds around the best; the smallest residual wins. Only
+    from ``restart_min_points`` (default 7) points on: each touch point fixes about one degree of freedom (its
+    distance along the surface normal), so the residual of 6 or fewer says nothing about the pose. Why: a few
+    touches keep TIQF's nearest-neighbour registration in the basin it starts from, and a wrong visual estimate (the
+    transparent target's) is a wrong basin. ``model_points`` is 20,000 (a 2,000-point model leaves 1-2.5 mm between
+    exact touches and their nearest model point, too coarse to tell a wrong basin from the right one).
     """
 
     FIGURES = ("tiqf.png", "declutter.png", "views.png")

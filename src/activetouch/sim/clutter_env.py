@@ -217,7 +217,7 @@ class ClutterTaskSpec:
     depth_noise_std: float = 0.002
     prior_sigma_t: float = 0.02
     prior_sigma_yaw_deg: float = 20.0
-    max_actions: int = 30
+    max_actions: int = 40  # covers the planner's own caps: 8 declutter actions + their 8 views, 9 views, 12 touches
     control_dt: float = 0.02
     timestep: float = 0.002
     max_ee_step: float = 0.004
