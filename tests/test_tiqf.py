@@ -455,6 +455,7 @@ def test_restarts_take_sparse_touches_out_of_a_wrong_basin(ycb):
         touches = transform_points(T, obj.sample_surface(12, seed=60 + seed).double())
         wrong = make_pose(_yaw(90.0) @ T[:3, :3], T[:3, 3] + torch.tensor([0.05, 0.0, 0.0], dtype=torch.float64))
         prior = make_pose(_yaw(20.0) @ T[:3, :3], T[:3, 3] + torch.tensor([0.0, 0.02, 0.0], dtype=torch.float64))
+
         def mesh(P):  # the exact distance to the box (the estimator's residual)
             return float(obj.sdf(transform_points(torch.linalg.inv(P), touches))[0].abs().mean())
 
