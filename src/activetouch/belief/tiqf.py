@@ -446,6 +446,19 @@ def register(model_points, scene_points, init, config: TIQFConfig = TIQFConfig()
     after ``max_iterations``. The translation is not a filter state (as in the paper): every call
     re-estimates it from its own correspondences, so sparse touches fully re-determine it.
     """
+    return _register(model_points, scene_points, init, config)
+
+
+def _model_tree(model_points):
+    """``scipy.spatial.cKDTree`` of the model points ``(M, 3)`` as :func:`register` builds it (float64, CPU)."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(_check_cloud(model_points, "model_points", 1).detach().to(torch.float64).cpu().numpy())
+
+
+def _register(model_points, scene_points, init, config: TIQFConfig, tree=None):
+    """:func:`register`; ``tree``: the model's KD-tree (:func:`_model_tree`) when the caller registers many times
+    against the same model (``config.nn == "kdtree"``; built here when None)."""
     t0 = time.perf_counter()
     model = _check_cloud(model_points, "model_points", 1)
     scene = _check_cloud(scene_points, "scene_points", 3)
@@ -464,8 +477,9 @@ def register(model_points, scene_points, init, config: TIQFConfig = TIQFConfig()
     t = state.t.to(device=dev, dtype=torch.float64)
     R = _quat_to_matrix(x)
 
-    tree = None
-    if config.nn == "kdtree":
+    if config.nn != "kdtree":
+        tree = None
+    elif tree is None:
         from scipy.spatial import cKDTree
 
         tree = cKDTree(model.cpu().numpy())
@@ -533,13 +547,15 @@ def registration_residual(model_points, scene_points, pose) -> float:
     """Mean distance (m) from each scene point ``(N, 3)`` (world) to its nearest model point ``(M, 3)`` (object
     frame) at ``pose (4, 4)``: how well the posed model explains the cloud (with a dense model, about 0.5 mm for
     exact touches at the true pose of a YCB object and 20,000 model points)."""
-    from scipy.spatial import cKDTree
+    return _tree_residual(_model_tree(model_points), scene_points, pose)
 
-    model = _check_cloud(model_points, "model_points", 1).detach().cpu().double()
+
+def _tree_residual(tree, scene_points, pose) -> float:
+    """:func:`registration_residual` against a prebuilt model KD-tree (:func:`_model_tree`)."""
     scene = _check_cloud(scene_points, "scene_points", 1).detach().cpu().double()
     T = check_poses(torch.as_tensor(pose), "pose").detach().cpu().double()
     local = (scene - T[:3, 3]) @ T[:3, :3]
-    dist, _ = cKDTree(model.numpy()).query(local.numpy(), k=1)
+    dist, _ = tree.query(local.numpy(), k=1)
     return float(dist.mean())
 
 
@@ -597,17 +613,18 @@ def register_restarts(model_points, scene_points, init, starts=None, config: TIQ
             raise ValueError(f"{name} must be an int >= 0, got {v!r}")
     if not (math.isfinite(refine_deg) and refine_deg >= 0 and math.isfinite(refine_shift) and refine_shift >= 0):
         raise ValueError(f"refine_deg and refine_shift must be finite and >= 0, got {refine_deg!r}, {refine_shift!r}")
+    tree = _model_tree(model_points)  # once for every registration below (it dominated a sparse registration)
     if residual is None:
         def residual(p):
-            return registration_residual(model_points, scene_points, p)
-    pose, state, info = register(model_points, scene_points, init, config)
+            return _tree_residual(tree, scene_points, p)
+    pose, state, info = _register(model_points, scene_points, init, config, tree)
     best = (float(residual(pose)), pose, state, info)
     n = 0
     if starts is not None and best[0] > restart_tol:
         S = check_poses(torch.as_tensor(starts), "starts")
         S = S.reshape(-1, 4, 4)
         for T0 in S:
-            p, s, i = register(model_points, scene_points, T0, config)
+            p, s, i = _register(model_points, scene_points, T0, config, tree)
             r = float(residual(p))
             if r < best[0]:
                 best = (r, p, s, i)
@@ -625,7 +642,7 @@ def register_restarts(model_points, scene_points, init, starts=None, config: TIQ
                 dR = axis_angle_to_matrix(axis / axis.norm() * angle)
                 dt = refine_shift * torch.randn(3, generator=gen, dtype=torch.float64)
                 T0 = make_pose(dR @ base[:3, :3], base[:3, 3] + dt).to(S.device)
-                p, s, i = register(model_points, scene_points, T0, config)
+                p, s, i = _register(model_points, scene_points, T0, config, tree)
                 r = float(residual(p))
                 if r < best[0]:
                     best = (r, p, s, i)

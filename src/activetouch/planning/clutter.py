@@ -133,6 +133,11 @@ class ClutterPlanner:
         T = belief.pose.detach().cpu().numpy()
         return T[:3, :3] @ self._centre_local + T[:3, 3]
 
+    def _model_at(self, pose: torch.Tensor) -> np.ndarray:
+        """The target's mesh vertices ``(V, 3)`` (world) at ``pose (4, 4)``: an obstacle for the gripper."""
+        T = pose.detach().cpu().double().numpy()
+        return self._vertices.numpy() @ T[:3, :3].T + T[:3, 3]
+
     def _stop_rule(self, belief) -> bool:
         """Sec. II-D-2: the estimate changed by less than 5 mm and 2 deg over the last acquisition."""
         from activetouch.planning.nbv import pose_change_below
@@ -163,8 +168,7 @@ class ClutterPlanner:
 
         st = cands.starts.detach().cpu().double().numpy()
         d = cands.directions.detach().cpu().double().numpy()
-        T = pose.detach().cpu().double().numpy()
-        target = self._vertices.numpy() @ T[:3, :3].T + T[:3, 3]
+        target = self._model_at(pose)
         every = np.concatenate([target, self.obstacles]) if len(self.obstacles) else target
         ok = np.ones(len(st), dtype=bool)
         for i in range(len(st)):
@@ -259,9 +263,8 @@ class ClutterPlanner:
         # replanning after a failure (II-B-2): plan_declutter skips the actions that failed on an object and those
         # whose gripper would land on a neighbour, in the paper's order of leaves and Eq. 2's action first. The
         # target's model at its estimate is an obstacle too: a transparent target's depth rays pass through it.
-        T = belief.pose.detach().cpu().double().numpy()
-        target_pts = self._vertices.numpy() @ T[:3, :3].T + T[:3, 3]
-        decision = plan_declutter(view, 0, self.declutter_config, failed=self.failed, obstacles=target_pts)
+        decision = plan_declutter(view, 0, self.declutter_config, failed=self.failed,
+                                  obstacles=self._model_at(belief.pose))
         self.last_decision = decision
         self.decisions.append((np.asarray(obs.seg).copy(), decision))
         if decision.next_object is None or self.n_declutter >= c.max_declutter:

@@ -753,10 +753,10 @@ def _push_candidates(k: ObjectGeometry, centroid: np.ndarray, direction: np.ndar
 
 def descent_clear(points: np.ndarray, start_xy: np.ndarray, z: float, direction: np.ndarray,
                   config: DeclutterConfig) -> bool:
-    """Whether the closed gripper can descend vertically onto a push (or touch) start: no point of ``points (N, 3)`` above
-    the fingertips ``z`` in the fingers' footprint (``finger_width`` along ``direction`` by twice
-    ``finger_thickness`` across: the two closed pads side by side), none above the palm's underside in the palm's
-    footprint (``palm_size[0]`` along, ``palm_size[1]`` across); footprints grown by ``collision_margin``."""
+    """Whether the closed gripper can descend vertically onto a push (or touch) start: no point of
+    ``points (N, 3)`` above the fingertips ``z`` in the fingers' footprint (``finger_width`` along ``direction`` by
+    twice ``finger_thickness`` across: the two closed pads side by side), none above the palm's underside in the
+    palm's footprint (``palm_size[0]`` along, ``palm_size[1]`` across); footprints grown by ``collision_margin``."""
     m = config.collision_margin
     axes = np.stack([direction, [-direction[1], direction[0]]])
     fingers = Rectangle(center=start_xy, axes=axes,
