@@ -49,6 +49,7 @@ __all__ = [
     "initial_state",
     "register",
     "registration_residual",
+    "state_at_pose",
     "yaw_shift_starts",
     "register_restarts",
 ]
@@ -541,6 +542,17 @@ def _register(model_points, scene_points, init, config: TIQFConfig, tree=None):
     info = {"iterations": it, "converged": converged, "mean_residual": float(dist.mean()),
             "n_correspondences": n_corr, "time_s": time.perf_counter() - t0}
     return make_pose(R, t).to(out_dtype), final, info
+
+
+def state_at_pose(state: TIQFState, pose) -> TIQFState:
+    """``state`` with its mean moved to ``pose (4, 4)``: the quaternion of its rotation (on ``state.x``'s
+    hemisphere) and its translation; the covariance, iterations and convergence flag stay."""
+    T = check_poses(torch.as_tensor(pose), "pose").to(state.x)
+    q = _matrix_to_quat(T[:3, :3])
+    if float(q @ state.x) < 0:
+        q = -q
+    return TIQFState(x=q / torch.linalg.vector_norm(q), Sigma=state.Sigma, t=T[:3, 3].clone(),
+                     iterations=state.iterations, converged=state.converged)
 
 
 def registration_residual(model_points, scene_points, pose) -> float:

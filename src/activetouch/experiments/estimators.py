@@ -466,14 +466,20 @@ class TiqfEstimator:
     touches keep TIQF's nearest-neighbour registration in the basin it starts from, and a wrong visual estimate (the
     transparent target's) is a wrong basin. ``model_points`` is 20,000 (a 2,000-point model leaves 1-2.5 mm between
     exact touches and their nearest model point, too coarse to tell a wrong basin from the right one).
+
+    Also beyond the paper, from the same ``restart_min_points`` on, the tactile registration's pose is polished on
+    the exact mesh (``belief.surface_fit.refine_on_surface``: the touches' signed distances in a least-squares fit
+    regularised towards TIQF's pose; ``surface_fit=false``: off): TIQF's point-to-model-point pairs leave sparse
+    touches 0.3-1.8 mm off the surface. The polished pose becomes the posterior's mean (its covariance stays).
     """
 
     FIGURES = ("tiqf.png", "declutter.png", "views.png")
     COLUMNS = ("adi_mm", "trans_err_mm", "action", "action_success", "contact_label", "n_visual", "n_tactile",
-               "tiqf_iterations", "tiqf_converged", "touch_cloud", "touch_restarts", "residual_mm", "pose_change_mm",
-               "pose_change_deg", "sigma_trace")
+               "tiqf_iterations", "tiqf_converged", "touch_cloud", "touch_restarts", "residual_mm", "surface_fit_mm",
+               "pose_change_mm", "pose_change_deg", "sigma_trace")
     EXTRA = {"model_points": 20000, "voxel": 0.005, "touch_cloud": "tactile", "verify_tol": 0.004,
-             "touch_restarts": 6, "restart_shift": 0.03, "restart_tol": 0.001, "restart_min_points": 7}
+             "touch_restarts": 6, "restart_shift": 0.03, "restart_tol": 0.001, "restart_min_points": 7,
+             "surface_fit": True}
 
     def __init__(self, env, cfg, device):
         from activetouch.belief.tiqf import TIQFConfig
@@ -492,6 +498,8 @@ class TiqfEstimator:
         r = self.extra["touch_restarts"]
         if isinstance(r, bool) or not isinstance(r, int) or r < 0:
             raise ValueError(f"belief touch_restarts must be an int >= 0 (0: no restarts), got {r!r}")
+        if not isinstance(self.extra["surface_fit"], bool):
+            raise ValueError(f"belief surface_fit must be true or false, got {self.extra['surface_fit']!r}")
         m = self.extra["restart_min_points"]
         if isinstance(m, bool) or not isinstance(m, int) or m < 3:
             raise ValueError(f"belief restart_min_points must be an int >= 3, got {m!r}")
@@ -551,7 +559,8 @@ class TiqfEstimator:
         return {}
 
     def observe(self, obs, info, ee_before, generator) -> dict[str, Any]:
-        from activetouch.belief.tiqf import register, register_restarts, yaw_shift_starts
+        from activetouch.belief.surface_fit import refine_on_surface
+        from activetouch.belief.tiqf import register, register_restarts, state_at_pose, yaw_shift_starts
         from activetouch.experiments.metrics import rotation_error, translation_error
         from activetouch.observations import voxel_representatives
 
@@ -593,6 +602,11 @@ class TiqfEstimator:
             else:
                 _, b.state, tinfo = register(b.model_points, cloud, b.state, self.config)
             row.update(tiqf_iterations=tinfo["iterations"], tiqf_converged=bool(tinfo["converged"]))
+            if (obs.kind == "touch" and mode == "tactile" and self.extra["surface_fit"]
+                    and len(cloud) >= self.extra["restart_min_points"]):
+                fit = refine_on_surface(self.obj.sdf, cloud, b.state.pose)
+                b.state = state_at_pose(b.state, fit.pose)
+                row.update(surface_fit_mm=1000 * fit.residual)
         b.history.append(b.pose.clone())
         row.update(n_visual=len(b.visual), n_tactile=len(b.tactile),
                    pose_change_mm=1000 * float(translation_error(b.pose, prev)),
