@@ -90,7 +90,7 @@ def test_tiqf_belief_settings_are_checked():
     with pytest.raises(ValueError, match="rho"):
         TiqfEstimator(env, EpisodeConfig(task="clutter-mustard", method="tiqf-static", belief={"rho": -1.0}), "cpu")
     for bad in ({"touch_restarts": -1}, {"touch_restarts": 2.5}, {"restart_tol": 0.0}, {"restart_shift": "far"},
-                {"restart_min_points": 2}, {"surface_fit": "yes"}):
+                {"restart_min_points": 2}, {"surface_fit": "yes"}, {"visual_fit": 1}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             TiqfEstimator(env, EpisodeConfig(task="clutter-mustard", method="tiqf-visuo-tactile", belief=bad), "cpu")
 
@@ -248,3 +248,25 @@ def test_surface_fit_polishes_the_touch_registration_and_can_be_turned_off():
     assert "surface_fit_mm" not in rows_on[1] and rows_on[-1]["surface_fit_mm"] < 0.2
     assert all("surface_fit_mm" not in r for r in rows_off)
     assert adi_on < adi_off, (adi_on, adi_off)
+
+
+def test_visual_fit_sees_through_mislabelled_boundary_pixels():
+    """A view of the target's visible side plus a fifth as many pixels of what stands behind and below it (the
+    segmentation's boundary errors): TIQF's least squares is pulled off, the robust surface fit is not."""
+    T = _true_pose()
+    info = {"true_pose": T.float()}
+    g = np.random.default_rng(0)
+    view = _surface_points(T, 400, 0, side=1)
+    centre = T[:3, 3].numpy() + np.array([0.0, 0.0, 0.08])
+    stray = centre + g.normal(0.0, 0.03, (len(view) // 5, 3)) + np.array([0.06, 0.0, -0.06])  # behind, below
+    cloud = np.concatenate([view, stray])
+    adi = {}
+    for on in (False, True):
+        est = TiqfEstimator(_Env(), EpisodeConfig(task="clutter-mustard", method="tiqf-active-vision",
+                                                  belief={"visual_fit": on}), "cpu")
+        gen = torch.Generator().manual_seed(0)
+        est.initialise(_Task(), ClutterObservation("reset", np.zeros((0, 3))), info, gen)
+        row = est.observe(ClutterObservation("view", cloud, success=True), info, None, gen)
+        assert ("visual_fit_mm" in row) == on
+        adi[on] = est.metrics(info)["adi_mm"]
+    assert adi[True] < 0.5 * adi[False] and adi[True] < 3.0, adi
