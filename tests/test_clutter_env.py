@@ -194,3 +194,33 @@ def test_every_gripper_yaw_is_reached_up_to_a_half_turn():
         got = float(e.ee_state()[3])
         assert abs(((got - wanted) + math.pi / 2) % math.pi - math.pi / 2) < 0.05, (wanted, c, got)
     assert short >= 1  # the case the choice exists for occurs on this path
+
+
+def test_camera_calibration_error_moves_every_view_rigidly():
+    """A miscalibrated camera (the clutter-miscal-* tasks): the same scene's view, with the same depth noise, comes
+    back turned about the pile centre and shifted by the set amounts; touches are not affected (the arm's frame)."""
+    views = {}
+    for err in ((0.0, 0.0), (0.01, 2.0)):
+        e = make_clutter_env("clutter-mustard", seg_boundary_noise=0.0, camera_calibration_error=err)
+        e.reset(3)
+        c = e.true_pose()[:3, 3] + np.array([0, 0, 0.1])
+        obs, *_ = e.step(ViewAction(tuple(c + [-0.3, 0.1, 0.4]), tuple(c)))
+        views[err] = obs.cloud.reshape(-1, 3)
+    a, b = views[(0.0, 0.0)], views[(0.01, 2.0)]
+    hit = np.isfinite(a).all(1)
+    assert hit.sum() > 1000 and np.array_equal(hit, np.isfinite(b).all(1))
+    a, b = a[hit], b[hit]
+    # rigid: pairwise distances kept; moved: by about 1 cm plus up to 2 deg x 0.3 m about the pile centre
+    i = np.random.default_rng(0).integers(0, len(a), (500, 2))
+    assert np.allclose(np.linalg.norm(a[i[:, 0]] - a[i[:, 1]], axis=1),
+                       np.linalg.norm(b[i[:, 0]] - b[i[:, 1]], axis=1), atol=1e-9)
+    moved = np.linalg.norm(b - a, axis=1)
+    assert 0.002 < np.median(moved) < 0.025
+    # the fitted rigid motion (Kabsch) turns by 2 deg
+    ca, cb = a.mean(0), b.mean(0)
+    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+    R = Vt.T @ U.T
+    assert math.degrees(math.acos(np.clip((np.trace(R) - 1) / 2, -1, 1))) == pytest.approx(2.0, abs=1e-6)
+    with pytest.raises(ValueError, match="camera_calibration_error"):
+        ClutterTaskSpec("x", camera_calibration_error=(-0.01, 0.0))
+    assert CLUTTER_TASKS["clutter-miscal-mustard"].camera_calibration_error == (0.008, 1.0)

@@ -195,6 +195,11 @@ class ClutterTaskSpec:
             is about 1-3 mm at 0.5-1 m).
         prior_sigma_t, prior_sigma_yaw_deg: the task's prior over the target pose (the coarse "approximate
             centroid" detection the paper starts from): the true pose perturbed by these.
+        camera_calibration_error: ``(m, deg)``: a fixed rigid error per scene between where the robot believes the
+            camera's points are and where they are (the camera arm's base or hand-eye calibration; touches are
+            measured in the touching arm's frame and have none): every view's points are turned by ``deg`` about a
+            random axis through the pile centre and shifted by ``m`` in a random direction, both drawn per seed.
+            ``(0, 0)`` (default): a perfectly calibrated camera.
         max_actions: episode budget T.
         control_dt, timestep, max_ee_step, touch_step: arm control period, physics step, ee speed per period
             (0.2 m/s transit, 0.05 m/s during guarded touches).
@@ -217,6 +222,7 @@ class ClutterTaskSpec:
     depth_noise_std: float = 0.002
     prior_sigma_t: float = 0.02
     prior_sigma_yaw_deg: float = 20.0
+    camera_calibration_error: tuple[float, float] = (0.0, 0.0)
     max_actions: int = 40  # covers the planner's own caps: 8 declutter actions + their 8 views, 9 views, 12 touches
     control_dt: float = 0.02
     timestep: float = 0.002
@@ -236,6 +242,10 @@ class ClutterTaskSpec:
             raise ValueError(f"num_clutter max {hi} exceeds the {len(pool)} clutter objects of the pool")
         if not (self.depth_noise_std >= 0.0):
             raise ValueError(f"depth_noise_std must be >= 0, got {self.depth_noise_std}")
+        err = tuple(self.camera_calibration_error)
+        if len(err) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0 for v in err):
+            raise ValueError(f"camera_calibration_error must be (metres >= 0, degrees >= 0), got "
+                             f"{self.camera_calibration_error!r}")
         if not (0.0 <= self.seg_boundary_noise <= 1.0):
             raise ValueError(f"seg_boundary_noise must be in [0, 1], got {self.seg_boundary_noise}")
         if self.max_actions < 1:
@@ -436,6 +446,7 @@ class ClutterEnv:
             if tilt < 15.0 and off < 0.05:
                 break
         self._noise = np.random.default_rng([seed, 12])
+        self._calibration = self._draw_calibration(np.random.default_rng([seed, 13]))
         self._n_actions = 0
         self._parked = True
         self._reset_done = True
@@ -444,6 +455,19 @@ class ClutterEnv:
         return ClutterObservation("reset", np.zeros((0, 3))), self._info()
 
     # ------------------------------------------------------------------ camera
+    def _draw_calibration(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray] | None:
+        """The scene's camera calibration error (``ClutterTaskSpec.camera_calibration_error``): ``(R (3, 3),
+        t (3,))`` applied as ``p -> R (p - c) + c + t`` about the pile centre ``c`` on the table; None when 0."""
+        metres, deg = self.spec.camera_calibration_error
+        if metres == 0 and deg == 0:
+            return None
+        axis, shift = rng.normal(size=3), rng.normal(size=3)
+        w = axis / np.linalg.norm(axis) * math.radians(deg)
+        K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+        th = float(np.linalg.norm(w))
+        R = np.eye(3) if th == 0 else np.eye(3) + math.sin(th) / th * K + (1 - math.cos(th)) / th ** 2 * K @ K
+        return R, metres * shift / np.linalg.norm(shift)
+
     def view_camera(self, position, look_at) -> PinholeCamera:
         s = self.spec
         return PinholeCamera(pos=tuple(map(float, position)), target=tuple(map(float, look_at)),
@@ -478,6 +502,10 @@ class ClutterEnv:
         if self.spec.depth_noise_std > 0:
             depth = depth + self._noise.normal(0.0, self.spec.depth_noise_std, depth.shape)
         cloud = np.where(hit[:, None], np.asarray(cam.pos) + dirs * np.where(hit, depth, 0.0)[:, None], np.nan)
+        if getattr(self, "_calibration", None) is not None:  # where the robot believes the points are
+            R, t = self._calibration
+            c = np.array([*self.spec.pile_centre, 0.0])
+            cloud = (cloud - c) @ R.T + c + t
         H, W = cam.height, cam.width
         seg = seg.reshape(H, W)
         if self.spec.seg_boundary_noise > 0:

@@ -7,10 +7,12 @@ vision fails. Each seed drops a new pile (``ClutterEnv.reset``).
 """
 from __future__ import annotations
 
+import dataclasses
+
 from .clutter_env import ClutterEnv, ClutterTaskSpec
 from .tasks import with_overrides
 
-__all__ = ["CLUTTER_TASKS", "get_clutter_spec", "make_clutter_env"]
+__all__ = ["CLUTTER_TASKS", "MISCALIBRATION", "get_clutter_spec", "make_clutter_env"]
 
 CLUTTER_TASKS: dict[str, ClutterTaskSpec] = {
     spec.name: spec for spec in (
@@ -25,6 +27,19 @@ CLUTTER_TASKS: dict[str, ClutterTaskSpec] = {
                                     "see it) in a pile of 4-8 YCB objects"),
     )
 }
+
+#: The camera calibration error of the ``clutter-miscal-*`` tasks (m, deg): our choice, the order of a two-arm
+#: base-to-base or hand-eye calibration; the paper does not state its camera's.
+MISCALIBRATION = (0.008, 1.0)
+
+# the same four targets seen by a miscalibrated camera (touch is measured in the arm's frame and has no such error)
+for _name in list(CLUTTER_TASKS):
+    _spec = CLUTTER_TASKS[_name]
+    _new = _name.replace("clutter-", "clutter-miscal-", 1)
+    CLUTTER_TASKS[_new] = dataclasses.replace(
+        _spec, name=_new, camera_calibration_error=MISCALIBRATION,
+        description=f"{_spec.description}; the camera miscalibrated by {MISCALIBRATION[0] * 1000:.0f} mm and "
+                    f"{MISCALIBRATION[1]:.0f} deg")
 
 
 def get_clutter_spec(name: str, **overrides) -> ClutterTaskSpec:
