@@ -10,10 +10,13 @@ correspondences from every scene point to its nearest model point, so neither se
   ``TIQF+R`` (beyond the paper, what the clutter estimator does with touches): ``register_restarts`` from the
   same initial pose, restarted when the touches lie more than 1 mm (mean) from the mesh, from 54 starts around the
   initial pose (turned about the world vertical in 60 deg steps, shifted by +-3 cm) and 3 x 30 around the best.
+  ``TIQF+RS``: ``TIQF+R``, then the pose polished on the exact mesh (``belief.surface_fit.refine_on_surface``; the
+  estimator does so from 7 touches on, here on every K).
 * ``visual+tactile-K``: the paper's use (Sec. II-D, "correct and verify"): the dense view comes from a camera
   with a calibration error (``--calib-deg``, ``--calib-mm``), and K exact tactile points refine that visual
   estimate. TIQF continues from its visual posterior (``register(..., init=state)``); ICP from its own
-  visual pose.
+  visual pose; ``TIQF+RS`` as the clutter estimator: the touches alone from the visual posterior, restarted around
+  the initial pose (the task's prior) when they fit badly, then polished on the mesh.
 
 Open3D's ``registration_icp`` aligns the scene (source) to the model cloud (target) from the inverse of the
 initial pose (so its correspondences are scene -> model like TIQF's), with ``TransformationEstimationPointToPoint``,
@@ -62,6 +65,7 @@ def main(argv=None) -> dict:
     import torch
 
     from activetouch import objects
+    from activetouch.belief.surface_fit import refine_on_surface
     from activetouch.belief.tiqf import TIQFConfig, register, register_restarts, yaw_shift_starts
     from activetouch.experiments.metrics import adi
     from activetouch.geometry import axis_angle_to_matrix, invert, make_pose, transform_points
@@ -110,6 +114,15 @@ def main(argv=None) -> dict:
                                               residual=mesh)
         return pose, state
 
+    def tiqf_restarts_fit(obj, scene, init, prior):
+        def mesh(P):
+            return float(obj.sdf(transform_points(invert(P.double()), scene))[0].abs().mean())
+
+        pose, state, info = register_restarts(model, scene, init, yaw_shift_starts(prior, 6, 0.03), cfg,
+                                              residual=mesh)
+        fit = refine_on_surface(obj.sdf, scene, pose)
+        return fit.pose, state
+
     def view(obj, T, n, g):
         """n surface points facing a random camera direction (world frame), back-face culled."""
         import trimesh
@@ -156,20 +169,22 @@ def main(argv=None) -> dict:
                 record(f"tactile-{k}", "TIQF", timed(tiqf, tp, init))
                 record(f"tactile-{k}", "ICP", timed(icp, model_pcd, tp, init))
                 record(f"tactile-{k}", "TIQF+R", timed(tiqf_restarts, obj, tp, init))
+                record(f"tactile-{k}", "TIQF+RS", timed(tiqf_restarts_fit, obj, tp, init, init))
+                record(f"visual+tactile-{k}", "TIQF+RS", timed(tiqf_restarts_fit, obj, tp, state_v, init))
                 record(f"visual+tactile-{k}", "TIQF", timed(tiqf, tp, state_v))
                 record(f"visual+tactile-{k}", "ICP", timed(icp, model_pcd, tp, pv_icp))
 
     print(f"TIQF {cfg}\nOpen3D {o3d.__version__} ICP point-to-point, max_dist {args.icp_max_dist} m; "
           f"{args.trials} trials/object, init error {args.init_deg} deg, {args.init_cm} cm; threads {args.threads}")
     print(f"TIQF iterations on the dense view: median {statistics.median(dense_iters)}, max {max(dense_iters)}")
-    header = (f"{'object':12s} {'cloud':24s} {'method':6s} {'success':>8s} {'med ADI mm':>10s} {'wall ms':>8s} "
+    header = (f"{'object':12s} {'cloud':24s} {'method':7s} {'success':>8s} {'med ADI mm':>10s} {'wall ms':>8s} "
               f"{'cpu ms':>8s}")
     print(header)
     print("-" * len(header))
     summary = {}
     for cloud in clouds[:1] + ["visual only (biased)"] + clouds[1:]:
         for name in names + ["ALL"]:
-            for method in ("TIQF", "ICP", "TIQF+R"):
+            for method in ("TIQF", "ICP", "TIQF+R", "TIQF+RS"):
                 vals = (sum((rows.get((n, cloud, method), []) for n in names), []) if name == "ALL"
                         else rows.get((name, cloud, method), []))
                 if not vals:
@@ -180,7 +195,7 @@ def main(argv=None) -> dict:
                 succ = sum(x < 0.01 for x in a) / len(a)
                 summary[(name, cloud, method)] = (succ, statistics.median(a), wall, cpu)
                 ms_txt = f"{wall:8.2f} {cpu:8.2f}" if wall > 0 else f"{'-':>8s} {'-':>8s}"
-                print(f"{name:12s} {cloud:24s} {method:6s} {succ:8.0%} {statistics.median(a) * 1000:10.2f} {ms_txt}")
+                print(f"{name:12s} {cloud:24s} {method:7s} {succ:8.0%} {statistics.median(a) * 1000:10.2f} {ms_txt}")
         print()
     return summary
 
