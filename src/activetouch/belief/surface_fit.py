@@ -113,7 +113,8 @@ def _skew(w: np.ndarray) -> np.ndarray:
 
 
 def _rotation(w: np.ndarray) -> np.ndarray:
-    """``exp([w]x)`` (Rodrigues)."""
+    """``exp([w]x)`` (Rodrigues; numpy float64 beside ``_left_jacobian`` inside SciPy's callbacks, where the
+    package's torch ``geometry.axis_angle_to_matrix`` would convert every call)."""
     th = float(np.linalg.norm(w))
     K = _skew(w)
     if th < 1e-12:

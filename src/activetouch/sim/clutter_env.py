@@ -461,12 +461,11 @@ class ClutterEnv:
         metres, deg = self.spec.camera_calibration_error
         if metres == 0 and deg == 0:
             return None
+        from activetouch.geometry import axis_angle_to_matrix
+
         axis, shift = rng.normal(size=3), rng.normal(size=3)
-        w = axis / np.linalg.norm(axis) * math.radians(deg)
-        K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-        th = float(np.linalg.norm(w))
-        R = np.eye(3) if th == 0 else np.eye(3) + math.sin(th) / th * K + (1 - math.cos(th)) / th ** 2 * K @ K
-        return R, metres * shift / np.linalg.norm(shift)
+        w = torch.as_tensor(axis / np.linalg.norm(axis) * math.radians(deg), dtype=torch.float64)
+        return axis_angle_to_matrix(w).numpy(), metres * shift / np.linalg.norm(shift)
 
     def view_camera(self, position, look_at) -> PinholeCamera:
         s = self.spec
