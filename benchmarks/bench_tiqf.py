@@ -65,7 +65,7 @@ def main(argv=None) -> dict:
     import torch
 
     from activetouch import objects
-    from activetouch.belief.surface_fit import refine_on_surface
+    from activetouch.belief.surface_fit import refine_on_surface, surface_residual
     from activetouch.belief.tiqf import TIQFConfig, register, register_restarts, yaw_shift_starts
     from activetouch.experiments.metrics import adi
     from activetouch.geometry import axis_angle_to_matrix, invert, make_pose, transform_points
@@ -106,22 +106,17 @@ def main(argv=None) -> dict:
         iters.append(info["iterations"])
         return pose, state
 
-    def tiqf_restarts(obj, scene, init):
-        def mesh(P):  # mean distance of the scene to the mesh at P (the estimator's residual)
-            return float(obj.sdf(transform_points(invert(P.double()), scene))[0].abs().mean())
-
-        pose, state, info = register_restarts(model, scene, init, yaw_shift_starts(init, 6, 0.03), cfg,
-                                              residual=mesh)
+    def tiqf_restarts(obj, scene, init, prior=None):
+        """Restarts around ``prior`` (default: ``init``), scored by the scene's mean distance to the mesh as the
+        estimator scores them."""
+        starts = yaw_shift_starts(init if prior is None else prior, 6, 0.03)
+        pose, state, info = register_restarts(model, scene, init, starts, cfg,
+                                              residual=lambda P: surface_residual(obj.sdf, scene, P))
         return pose, state
 
     def tiqf_restarts_fit(obj, scene, init, prior):
-        def mesh(P):
-            return float(obj.sdf(transform_points(invert(P.double()), scene))[0].abs().mean())
-
-        pose, state, info = register_restarts(model, scene, init, yaw_shift_starts(prior, 6, 0.03), cfg,
-                                              residual=mesh)
-        fit = refine_on_surface(obj.sdf, scene, pose)
-        return fit.pose, state
+        pose, state = tiqf_restarts(obj, scene, init, prior)
+        return refine_on_surface(obj.sdf, scene, pose).pose, state
 
     def view(obj, T, n, g):
         """n surface points facing a random camera direction (world frame), back-face culled."""

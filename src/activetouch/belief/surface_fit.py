@@ -103,8 +103,8 @@ def _check(points, pose, config: SurfaceFitConfig) -> tuple[np.ndarray, np.ndarr
 def surface_residual(sdf: Callable, points, pose) -> float:
     """Mean absolute signed distance (m) of world points ``(N, 3)`` to the mesh at ``pose (4, 4)``; ``sdf`` maps
     object-frame points ``(N, 3)`` to ``(values (N,), unit gradients (N, 3))`` (``KnownObject.sdf``)."""
-    P, T = _check(points, pose, SurfaceFitConfig())
-    d, _ = sdf(torch.as_tensor((P - T[:3, 3]) @ T[:3, :3], dtype=torch.float32))
+    P, T = (torch.as_tensor(a) for a in _check(points, pose, SurfaceFitConfig()))
+    d, _ = sdf((P - T[:3, 3]) @ T[:3, :3])
     return float(d.detach().cpu().double().abs().mean())
 
 

@@ -563,7 +563,7 @@ class TiqfEstimator:
         return {}
 
     def observe(self, obs, info, ee_before, generator) -> dict[str, Any]:
-        from activetouch.belief.surface_fit import VISUAL_FIT, refine_on_surface
+        from activetouch.belief.surface_fit import VISUAL_FIT, refine_on_surface, surface_residual
         from activetouch.belief.tiqf import register, register_restarts, state_at_pose, yaw_shift_starts
         from activetouch.experiments.metrics import rotation_error, translation_error
         from activetouch.observations import voxel_representatives
@@ -595,19 +595,20 @@ class TiqfEstimator:
                     row["touch_cloud"] = mode
                 cloud = b.tactile if mode == "tactile" else torch.cat([b.tactile, b.visual])
         if cloud is not None and len(cloud) >= 3:
-            if (obs.kind == "touch" and mode == "tactile" and self.extra["touch_restarts"] > 0
-                    and len(cloud) >= self.extra["restart_min_points"]):
+            # enough touches registered alone for a residual to mean something: restarts and the surface fit
+            touches_alone = (obs.kind == "touch" and mode == "tactile"
+                             and len(cloud) >= self.extra["restart_min_points"])
+            if touches_alone and self.extra["touch_restarts"] > 0:
                 starts = yaw_shift_starts(b.history[0], int(self.extra["touch_restarts"]),
                                           float(self.extra["restart_shift"]))
                 _, b.state, tinfo = register_restarts(b.model_points, cloud, b.state, starts, self.config,
                                                       restart_tol=float(self.extra["restart_tol"]),
-                                                      residual=lambda T: self._mesh_residual(cloud, T))
+                                                      residual=lambda T: surface_residual(self.obj.sdf, cloud, T))
                 row.update(touch_restarts=tinfo["restarts"], residual_mm=1000 * tinfo["residual"])
             else:
                 _, b.state, tinfo = register(b.model_points, cloud, b.state, self.config)
             row.update(tiqf_iterations=tinfo["iterations"], tiqf_converged=bool(tinfo["converged"]))
-            if (obs.kind == "touch" and mode == "tactile" and self.extra["surface_fit"]
-                    and len(cloud) >= self.extra["restart_min_points"]):
+            if touches_alone and self.extra["surface_fit"]:
                 fit = refine_on_surface(self.obj.sdf, cloud, b.state.pose)
                 b.state = state_at_pose(b.state, fit.pose)
                 row.update(surface_fit_mm=1000 * fit.residual)
@@ -642,13 +643,6 @@ class TiqfEstimator:
                    pose_change_mm=1000 * float(translation_error(b.pose, prev)),
                    pose_change_deg=math.degrees(float(rotation_error(b.pose, prev))))
         return row
-
-    def _mesh_residual(self, cloud: torch.Tensor, T: torch.Tensor) -> float:
-        """Mean distance (m) of the points ``cloud (N, 3)`` (world) to the target's mesh at the pose ``T (4, 4)``
-        (exact: no model-cloud spacing floor)."""
-        T = T.detach().cpu().double()
-        local = (cloud.detach().cpu().double() - T[:3, 3]) @ T[:3, :3]
-        return float(self.obj.sdf(local)[0].abs().mean())
 
     @staticmethod
     def _touch_residual(b: "TiqfBelief") -> float:

@@ -303,6 +303,7 @@ class ClutterEnv:
         self._n_actions = 0
         self._parked = False
         self._motion_dir = np.array([0.0, 0.0, -1.0])  # the direction of the last straight ee motion
+        self._calibration = None  # the scene's camera calibration error (drawn by reset)
 
     @property
     def max_steps(self) -> int:
@@ -501,7 +502,7 @@ class ClutterEnv:
         if self.spec.depth_noise_std > 0:
             depth = depth + self._noise.normal(0.0, self.spec.depth_noise_std, depth.shape)
         cloud = np.where(hit[:, None], np.asarray(cam.pos) + dirs * np.where(hit, depth, 0.0)[:, None], np.nan)
-        if getattr(self, "_calibration", None) is not None:  # where the robot believes the points are
+        if self._calibration is not None:  # where the robot believes the points are
             R, t = self._calibration
             c = np.array([*self.spec.pile_centre, 0.0])
             cloud = (cloud - c) @ R.T + c + t
