@@ -270,3 +270,37 @@ def test_visual_fit_sees_through_mislabelled_boundary_pixels():
         assert ("visual_fit_mm" in row) == on
         adi[on] = est.metrics(info)["adi_mm"]
     assert adi[True] < 0.5 * adi[False] and adi[True] < 3.0, adi
+
+
+def test_touch_stop_rule_waits_for_a_complete_touch_registration():
+    """The touch phase stops when the estimate no longer moves (Sec. II-D-2), but not before the belief holds the
+    tactile points from which its registration restarts and fits (7): with fewer, a registration stuck in the visual
+    estimate's basin would pass the test without having been checked."""
+    from activetouch.planning.clutter import ClutterPlanner
+    from activetouch.sim.clutter_env import TouchAction
+    from activetouch.sim.clutter_tasks import make_clutter_env
+
+    env = make_clutter_env("clutter-mustard", num_clutter=(1, 1))
+    obs, info = env.reset(0)
+    est = TiqfEstimator(env, EpisodeConfig(task="clutter-mustard", method="tiqf-visuo-tactile"), "cpu")
+    est.initialise(get_task("clutter-mustard"), obs, info, torch.Generator().manual_seed(0))
+    b = est.belief
+    assert b.min_stop_points == 7
+    T = info["true_pose"].double()
+    b.history = [b.pose.clone(), b.pose.clone()]  # the last touch moved nothing
+    touch = ClutterObservation("touch", np.zeros((1, 3)), success=True)
+    stopped = {}
+    for n in (5, 6, 7, 9):
+        planner = ClutterPlanner.from_env(env, None, 0)
+        planner.n_touch_ok = 4  # past the 3 random touches: the next one is the 5th that reached the target
+        b.tactile = torch.as_tensor(_surface_points(T, n, seed=n), dtype=torch.float64)
+        action = planner._touch(b, touch)
+        stopped[n] = action is None
+        assert stopped[n] == (planner.stop_reason == "touch: estimate changed < 5 mm and 2 deg")
+        assert stopped[n] or isinstance(action, TouchAction)
+    assert stopped == {5: False, 6: False, 7: True, 9: True}
+    # the paper's estimator (no restarts, no fit) or touches registered with the visual cloud: any count judges
+    for belief in ({"touch_restarts": 0, "surface_fit": False}, {"touch_cloud": "visuo-tactile"}):
+        e2 = TiqfEstimator(env, EpisodeConfig(task="clutter-mustard", method="tiqf-visuo-tactile", belief=belief), "cpu")
+        e2.initialise(get_task("clutter-mustard"), obs, info, torch.Generator().manual_seed(0))
+        assert e2.belief.min_stop_points == 0

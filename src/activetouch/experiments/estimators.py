@@ -409,6 +409,9 @@ class TiqfBelief:
         self.tactile = torch.zeros(0, 3, dtype=torch.float64)
         self.history: list[torch.Tensor] = [state.pose.clone()]  # the pose after every acquisition
         self.visual_pose: torch.Tensor | None = None  # the estimate just before the first touch
+        # tactile points from which the touches' registration is complete (the estimator's restarts and surface fit
+        # act from there on); the touch phase's stop rule judges no estimate made from fewer (0: any)
+        self.min_stop_points = 0
 
     @property
     def pose(self) -> torch.Tensor:
@@ -471,6 +474,8 @@ class TiqfEstimator:
     the exact mesh (``belief.surface_fit.refine_on_surface``: the touches' signed distances in a least-squares fit
     regularised towards TIQF's pose; ``surface_fit=false``: off): TIQF's point-to-model-point pairs leave sparse
     touches 0.3-1.8 mm off the surface. The polished pose becomes the posterior's mean (its covariance stays).
+    The belief then asks the touch phase's stop rule to wait for those points (``TiqfBelief.min_stop_points``):
+    before them a registration stuck in a wrong visual basin does not move, and passes the rule unchecked.
     ``visual_fit=true`` (off by default: not the paper's pipeline) polishes every view's registration the same way
     on the segmented cloud, with a robust loss (``belief.surface_fit.VISUAL_FIT``: 2 mm, Cauchy): TIQF's least
     squares is pulled by the mislabelled boundary pixels the simulated segmentation adds, the robust fit is not.
@@ -540,6 +545,9 @@ class TiqfEstimator:
         state = initial_state(prior[0].double(), self.config)
         pts = self.obj.sample_surface(self.extra["model_points"], seed=0).double()
         self.belief = TiqfBelief(self.obj, state, pts, self.config)
+        checked = self.extra["touch_restarts"] > 0 or self.extra["surface_fit"]
+        if self.extra["touch_cloud"] != "visuo-tactile" and checked:
+            self.belief.min_stop_points = int(self.extra["restart_min_points"])
         self.features = obs
         if feats is not None:  # X_0's surface points (camera) are the first visual cloud
             self.features = feats

@@ -328,7 +328,12 @@ class ClutterPlanner:
             return None
         # the stop rule judges next best touches (Sec. II-D-2: the random touches only initialise TIQF and NBT with
         # >= 3 points): the change that the last random touch made says nothing about what a chosen one would make
-        if n_tac > c.min_touches and getattr(obs, "kind", None) == "touch" and obs.success and self._stop_rule(belief):
+        # and (ours) it waits for the points from which the belief's touch registration is complete: before them
+        # (``TiqfBelief.min_stop_points``: 7, where the restarts and the surface fit start) a few touches registered
+        # from a wrong visual estimate stay in its basin, and an estimate that cannot move passes the test anyway
+        enough = len(getattr(belief, "tactile", ())) >= getattr(belief, "min_stop_points", 0)
+        if n_tac > c.min_touches and enough and getattr(obs, "kind", None) == "touch" and obs.success \
+                and self._stop_rule(belief):
             self.phase, self.stop_reason = "stop", "touch: estimate changed < 5 mm and 2 deg"
             return None
         pose = belief.pose.detach().double()
